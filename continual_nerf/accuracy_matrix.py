@@ -1,0 +1,48 @@
+"""The continual-learning accuracy matrix R[i][j]: PSNR on task j's test frames after training task i."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import List
+
+ACCURACY_MATRIX_FILENAME = "accuracy_matrix.json"
+
+
+@dataclass
+class AccuracyMatrix:
+    """Rows are appended as tasks end; row i holds tasks 1..i+1."""
+
+    num_tasks: int
+    psnr: List[List[float]] = field(default_factory=list)
+    """psnr[i][j]: mean PSNR (dB) over task j's test frames after training task i."""
+    ssim: List[List[float]] = field(default_factory=list)
+    """ssim[i][j]: mean SSIM over task j's test frames after training task i."""
+    mean_psnr: List[float] = field(default_factory=list)
+    """Mean PSNR over all test frames of the tasks seen after task i."""
+    steps: List[int] = field(default_factory=list)
+    """Training step at which each row was measured."""
+    finished: bool = False
+    """Whether every task was trained; a run cut short leaves this false."""
+
+    def add_row(self, psnr: List[float], ssim: List[float], mean_psnr: float, step: int) -> None:
+        self.psnr.append(psnr)
+        self.ssim.append(ssim)
+        self.mean_psnr.append(mean_psnr)
+        self.steps.append(step)
+        self.finished = len(self.psnr) == self.num_tasks
+
+    def write(self, directory: Path) -> Path:
+        """Write atomically (temporary file, then rename) so a kill never leaves a half-written file."""
+        path = directory / ACCURACY_MATRIX_FILENAME
+        directory.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_suffix(".json.tmp")
+        temporary.write_text(json.dumps(asdict(self), indent=2))
+        os.replace(temporary, path)
+        return path
+
+    @classmethod
+    def read(cls, path: Path) -> "AccuracyMatrix":
+        return cls(**json.loads(path.read_text()))

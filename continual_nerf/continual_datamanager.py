@@ -1,0 +1,233 @@
+"""The continual datamanager: releases one task's images at a time and keeps the replay oracle.
+
+Every training batch samples rays uniformly over all pixels of the tasks released so far. Rays of
+the open task carry their pixels; rays of earlier tasks carry the replay oracle's colours (Eq. 4).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
+from nerfstudio.model_components.ray_generators import RayGenerator
+from nerfstudio.models.base_model import Model
+
+from continual_nerf.continual_dataset import ContinualDataset
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.replay_oracle import ReplayOracle
+from continual_nerf.errors import ContinualConfigError
+from continual_nerf.task_schedule import TaskSplit, split_into_tasks
+
+
+@dataclass
+class ContinualDataManagerConfig(VanillaDataManagerConfig):
+    """Splits the dataparser's trajectory into tasks and streams them to the model one at a time."""
+
+    _target: Type = field(default_factory=lambda: ContinualDataManager)
+    dataparser: AnnotatedDataParserUnion = field(default_factory=ContinualDemoDataParserConfig)
+    """Dataparser that reads the trajectory; its train split, in capture order, is the whole trajectory."""
+    num_tasks: int = 10
+    """Number of temporally contiguous tasks the trajectory is split into (paper: 10)."""
+    test_interval: int = 8
+    """Every test_interval-th frame of each task is held out for evaluation and never trained on."""
+    iterations_per_task: int = 1000
+    """Training iterations per task; the run has num_tasks x iterations_per_task iterations."""
+    seconds_per_task: Optional[float] = None
+    """Wall-clock training seconds per task (the paper's time-constrained setting); overrides iterations_per_task."""
+    replay: bool = True
+    """Supervise rays of past tasks with the frozen copy of the model (Eq. 4); off trains each task alone."""
+
+    def validate(self) -> None:
+        """Reject budgets that cannot train, with a one-line message naming the option."""
+        if self.seconds_per_task is not None and not self.seconds_per_task > 0:
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.seconds-per-task must be positive, got {self.seconds_per_task}"
+            )
+        if self.seconds_per_task is None and self.iterations_per_task < 1:
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.iterations-per-task must be at least 1, got {self.iterations_per_task}"
+            )
+        if self.train_num_rays_per_batch < 1:
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got {self.train_num_rays_per_batch}"
+            )
+
+    def max_num_iterations(self) -> int:
+        """Iterations the whole run needs; a generous cap when tasks are timed instead."""
+        if self.seconds_per_task is not None:
+            return 10**9
+        return self.num_tasks * self.iterations_per_task
+
+
+def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> DataparserOutputs:
+    """The dataparser outputs restricted to `frames`, per-frame metadata included."""
+    num_frames = len(outputs.image_filenames)
+    index = torch.as_tensor(frames, dtype=torch.long)
+
+    def pick(value: Any) -> Any:
+        if isinstance(value, list) and len(value) == num_frames:
+            return [value[i] for i in frames]
+        if isinstance(value, torch.Tensor) and value.shape[:1] == (num_frames,):
+            return value[index]
+        return value
+
+    return dataclasses.replace(
+        outputs,
+        image_filenames=pick(outputs.image_filenames),
+        cameras=outputs.cameras[index],
+        mask_filenames=None if outputs.mask_filenames is None else pick(outputs.mask_filenames),
+        metadata={key: pick(value) for key, value in outputs.metadata.items()},
+    )
+
+
+class ContinualDataManager(VanillaDataManager):
+    """Releases the trajectory task by task; the pixels of closed tasks are never read again."""
+
+    config: ContinualDataManagerConfig
+    train_dataset: ContinualDataset
+    eval_dataset: InputDataset
+    task_split: TaskSplit
+
+    def __init__(
+        self,
+        config: ContinualDataManagerConfig,
+        device: Union[torch.device, str] = "cpu",
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        **kwargs,
+    ):
+        config.validate()
+        self.current_task = 0
+        self.task_iterations = 0
+        self.task_seconds = 0.0
+        super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
+        self.replay_oracle = ReplayOracle()
+
+    @property
+    def num_tasks(self) -> int:
+        return self.task_split.num_tasks
+
+    @property
+    def is_last_task(self) -> bool:
+        return self.current_task == self.num_tasks - 1
+
+    def create_train_dataset(self) -> ContinualDataset:
+        outputs = self.train_dataparser_outputs
+        self.task_split = split_into_tasks(len(outputs.image_filenames), self.config.num_tasks, self.config.test_interval)
+        return ContinualDataset(
+            subset_outputs(outputs, self.task_split.all_train_frames()),
+            self.task_split.train_task_of_frame(),
+            scale_factor=self.config.camera_res_scale_factor,
+        )
+
+    def create_eval_dataset(self) -> InputDataset:
+        return InputDataset(
+            subset_outputs(self.train_dataparser_outputs, self.task_split.all_test_frames()),
+            scale_factor=self.config.camera_res_scale_factor,
+        )
+
+    def setup_train(self) -> None:
+        self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
+        self.train_dataset.open(self.current_task)
+
+    def setup_eval(self) -> None:
+        self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
+        # ns-eval and ns-render read these; they cover the test frames of every task
+        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(self.eval_dataset, device=self.device)
+        self.eval_dataloader = RandIndicesEvalDataloader(self.eval_dataset, device=self.device)
+
+    def test_task_of_frame(self) -> torch.Tensor:
+        return torch.as_tensor(self.task_split.test_task_of_frame(), dtype=torch.long)
+
+    def seen_test_frames(self) -> torch.Tensor:
+        """Test frames of the tasks released so far."""
+        return torch.nonzero(self.test_task_of_frame() <= self.current_task).view(-1)
+
+    def budget_spent(self) -> bool:
+        if self.config.seconds_per_task is not None:
+            return self.task_seconds >= self.config.seconds_per_task
+        return self.task_iterations >= self.config.iterations_per_task
+
+    def open_next_task(self, model: Model) -> None:
+        """Freeze `model` as the replay oracle, close the current task and release the next one."""
+        if self.config.replay:
+            self.replay_oracle.update(model)
+        self.current_task += 1
+        self.task_iterations = 0
+        self.task_seconds = 0.0
+        self.train_dataset.open(self.current_task)
+
+    def sample_pixels(self, num_rays: int) -> torch.Tensor:
+        """Flat pixel numbers drawn uniformly over all released tasks (over the open task alone without replay)."""
+        start, end = self.train_dataset.open_task_pixel_range()
+        replaying = self.config.replay and self.replay_oracle.ready
+        return torch.randint(0 if replaying else start, end, (num_rays,))
+
+    def ray_indices(self, flat: torch.Tensor) -> torch.Tensor:
+        """(camera, y, x) of flat pixel numbers."""
+        offsets = self.train_dataset.pixel_offsets
+        frame = torch.searchsorted(offsets, flat, right=True) - 1
+        local = flat - offsets[frame]
+        width = self.train_dataset.cameras.width.view(-1)[frame].long()
+        return torch.stack([frame, local // width, local % width], dim=-1)
+
+    def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+        self.train_count += 1
+        self.task_iterations += 1
+        flat = self.sample_pixels(self.config.train_num_rays_per_batch)
+        indices = self.ray_indices(flat)
+        ray_bundle = self.train_ray_generator(indices)
+        start, _ = self.train_dataset.open_task_pixel_range()
+        is_replay = flat < start
+        current = ~is_replay
+        image = torch.empty((len(flat), 3), device=self.device)
+        image[current] = self.train_dataset.task_pixels[flat[current] - start].to(self.device)
+        if is_replay.any():
+            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(self.device)]).to(image.dtype)
+        return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
+
+    def _eval_frame(self, step: int) -> int:
+        frames = self.seen_test_frames()
+        return int(frames[step % len(frames)])
+
+    def next_eval(self, step: int) -> Tuple[RayBundle, Dict]:
+        """A batch of rays of one test frame of a released task."""
+        self.eval_count += 1
+        frame = self._eval_frame(self.eval_count)
+        image = self.eval_dataset.get_image_float32(frame)[..., :3]
+        height, width = image.shape[:2]
+        flat = torch.randint(0, height * width, (self.config.eval_num_rays_per_batch,))
+        indices = torch.stack([torch.full_like(flat, frame), flat // width, flat % width], dim=-1)
+        batch = {"image": image.view(-1, 3)[flat].to(self.device), "indices": indices}
+        return self.eval_ray_generator(indices), batch
+
+    def next_eval_image(self, step: int) -> Tuple[Cameras, Dict]:
+        """One whole test frame of a released task."""
+        self.eval_count += 1
+        frame = self._eval_frame(self.eval_count)
+        return self.eval_dataset.cameras[frame : frame + 1].to(self.device), self.eval_dataset[frame]
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        return {
+            "current_task": self.current_task,
+            "task_iterations": self.task_iterations,
+            "task_seconds": self.task_seconds,
+        }
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        self.current_task = int(state["current_task"])
+        self.task_iterations = int(state["task_iterations"])
+        self.task_seconds = float(state["task_seconds"])
+        if self.test_mode == "val":
+            self.train_dataset.open(self.current_task)

@@ -1,0 +1,63 @@
+"""Training frames whose pixels can be read only while their task is open."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.datasets.base_dataset import InputDataset
+
+
+class ClosedTaskError(PermissionError):
+    """Raised when pixels of a task that is not open are requested."""
+
+
+class ContinualDataset(InputDataset):
+    """An InputDataset that serves pixels of the open task only.
+
+    Camera rays (poses and intrinsics) of every frame stay available: the continual setting allows
+    rays of past tasks. Pixels of a task are loaded when it opens and dropped when it closes; reading
+    a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
+    """
+
+    def __init__(self, dataparser_outputs: DataparserOutputs, task_of_frame: np.ndarray, scale_factor: float = 1.0):
+        super().__init__(dataparser_outputs, scale_factor=scale_factor)
+        self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
+        self.open_task: Optional[int] = None
+        self.task_pixels: Optional[torch.Tensor] = None
+        """Pixels of the open task's frames, flattened and concatenated in frame order (P, 3)."""
+        pixel_counts = (self.cameras.width * self.cameras.height).view(-1).long()
+        self.pixel_offsets = torch.cat([torch.zeros(1, dtype=torch.long), pixel_counts.cumsum(0)])
+        """Start of every frame in the flat pixel numbering of all training frames; last entry is the total."""
+
+    def frames_of_task(self, task: int) -> torch.Tensor:
+        return torch.nonzero(self.task_of_frame == task).view(-1)
+
+    def open(self, task: int) -> None:
+        """Close the open task (dropping its pixels) and load the pixels of `task`."""
+        self.task_pixels = None
+        self.open_task = task
+        images = [self.get_image_float32(int(i))[..., :3].reshape(-1, 3) for i in self.frames_of_task(task)]
+        self.task_pixels = torch.cat(images)
+
+    def close(self) -> None:
+        """Drop the open task's pixels; no task's pixels are readable afterwards."""
+        self.task_pixels = None
+        self.open_task = None
+
+    def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+        task = int(self.task_of_frame[image_idx])
+        if task != self.open_task:
+            raise ClosedTaskError(
+                f"frame {image_idx} ({self._dataparser_outputs.image_filenames[image_idx]}) belongs to task {task + 1}; "
+                f"only the open task's pixels are readable (open: {None if self.open_task is None else self.open_task + 1})"
+            )
+        return super().get_numpy_image(image_idx)
+
+    def open_task_pixel_range(self) -> tuple[int, int]:
+        """Flat pixel numbers [start, end) covered by the open task."""
+        frames = self.frames_of_task(self.open_task)
+        return int(self.pixel_offsets[frames[0]]), int(self.pixel_offsets[frames[-1] + 1])

@@ -1,0 +1,77 @@
+"""continual-ngp's model: nerfstudio's hash-grid field and proposal sampler with the paper's sizes, trained with Eq. 4."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Tuple, Type
+from unittest import mock
+
+import torch
+import torchmetrics.image.lpip
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from torch import nn
+
+from continual_nerf.distillation_loss import distillation_loss
+
+
+@dataclass
+class ContinualNGPModelConfig(NerfactoModelConfig):
+    """Hash grid + small MLP with the paper's hyperparameters (section 5.1); every nerfacto option still applies."""
+
+    _target: Type = field(default_factory=lambda: ContinualNGPModel)
+    num_levels: int = 16
+    """Number of levels of the hash grid (paper: 16)."""
+    base_res: int = 16
+    """Resolution of the coarsest hash grid level (paper: 16)."""
+    max_res: int = 512
+    """Resolution of the finest hash grid level (paper: 512)."""
+    log2_hashmap_size: int = 17
+    """log2 of the hash table size per level (paper: 2^17)."""
+    features_per_level: int = 2
+    """Features per hash grid level (paper: 2)."""
+    num_proposal_iterations: int = 1
+    """Number of proposal-network sampling rounds before the field's samples."""
+    num_proposal_samples_per_ray: Tuple[int, ...] = (64,)
+    """Samples per ray for each proposal round."""
+    num_nerf_samples_per_ray: int = 32
+    """Samples per ray the field is evaluated at."""
+    use_appearance_embedding: bool = False
+    """Per-image appearance codes; off because images of future tasks have no code to learn yet."""
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
+    """Pose refinement; off because the paper trains on ground-truth poses."""
+
+
+class _LPIPSNotComputed(nn.Module):
+    """Stands in for torchmetrics' LPIPS, whose construction downloads AlexNet weights."""
+
+    def __init__(self, **_: object) -> None:
+        super().__init__()
+
+    def forward(self, *_: torch.Tensor) -> torch.Tensor:
+        return torch.tensor(float("nan"))
+
+
+class ContinualNGPModel(NerfactoModel):
+    """Nerfacto's field, sampler and renderers; the loss splits into Eq. 4's pixel and distillation terms."""
+
+    config: ContinualNGPModelConfig
+
+    def populate_modules(self) -> None:
+        # nothing may download at run time, and this model reports PSNR and SSIM only
+        with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
+            super().populate_modules()
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if "is_replay" in batch:
+            del loss_dict["rgb_loss"]
+            loss_dict.update(distillation_loss(outputs["rgb"], batch["image"].to(self.device), batch["is_replay"]))
+        return loss_dict
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
+        del metrics_dict["lpips"]
+        return metrics_dict, images_dict

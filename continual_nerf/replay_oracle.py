@@ -1,0 +1,46 @@
+"""The replay oracle: one frozen copy of the model, replaced at the end of every task (paper, section 4.3)."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.models.base_model import Model
+from torch import nn
+
+
+class ReplayOracle(nn.Module):
+    """Renders pseudo ground truth for rays of past tasks from a frozen copy of the model.
+
+    Exactly one copy exists: the first `update` builds it from the model's config, later ones
+    overwrite its weights in place, so memory does not grow with the number of tasks.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.model: Optional[Model] = None
+
+    @property
+    def ready(self) -> bool:
+        return self.model is not None
+
+    def update(self, model: Model) -> None:
+        """Freeze a copy of `model` as the oracle, replacing the previous one."""
+        if self.model is None:
+            # a built nerfstudio model cannot be deep-copied; a second one from the same config can load its state
+            self.model = model.config.setup(scene_box=model.scene_box, num_train_data=model.num_train_data, **model.kwargs)
+            self.model.to(model.device)
+        self.model.load_state_dict(model.state_dict())
+        self.model.eval()
+        self.model.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> "ReplayOracle":
+        """The copy stays in eval mode whatever the pipeline does: its samplers must not jitter."""
+        return super().train(False)
+
+    @torch.no_grad()
+    def render(self, ray_bundle: RayBundle) -> torch.Tensor:
+        """Colour (N, 3) the frozen copy renders along each ray."""
+        assert self.model is not None, "the replay oracle is used before the first task ended"
+        return self.model(ray_bundle)["rgb"]

@@ -1,0 +1,65 @@
+"""Splitting a capture trajectory into temporally contiguous tasks (paper, section 3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from continual_nerf.errors import ContinualConfigError
+
+
+@dataclass(frozen=True)
+class TaskSplit:
+    """Which frames of a trajectory (indices in capture order) each task trains and tests on."""
+
+    train_frames: tuple[np.ndarray, ...]
+    """Per task, the training frames, in capture order."""
+    test_frames: tuple[np.ndarray, ...]
+    """Per task, the held-out test frames inside the task's span."""
+
+    @property
+    def num_tasks(self) -> int:
+        return len(self.train_frames)
+
+    def train_task_of_frame(self) -> np.ndarray:
+        """Task index of every training frame, in training-frame order."""
+        return np.concatenate([np.full(len(f), t) for t, f in enumerate(self.train_frames)])
+
+    def test_task_of_frame(self) -> np.ndarray:
+        """Task index of every test frame, in test-frame order."""
+        return np.concatenate([np.full(len(f), t) for t, f in enumerate(self.test_frames)])
+
+    def all_train_frames(self) -> np.ndarray:
+        return np.concatenate(self.train_frames)
+
+    def all_test_frames(self) -> np.ndarray:
+        return np.concatenate(self.test_frames)
+
+
+def split_into_tasks(num_frames: int, num_tasks: int, test_interval: int) -> TaskSplit:
+    """Cut frames 0..num_frames-1 into num_tasks contiguous spans of near-equal length.
+
+    Inside each span, every test_interval-th frame (counting from the span's first frame) is held
+    out for testing, so every task has test frames and every test frame lies in its task's span.
+    """
+    if num_frames < 1:
+        raise ContinualConfigError("the dataset has no frames: nothing to split into tasks")
+    if num_tasks < 1:
+        raise ContinualConfigError(f"--pipeline.datamanager.num-tasks must be at least 1, got {num_tasks}")
+    if test_interval < 2:
+        raise ContinualConfigError(
+            f"--pipeline.datamanager.test-interval must be at least 2 (1 would hold out every frame), got {test_interval}"
+        )
+    spans = np.array_split(np.arange(num_frames), num_tasks)
+    train, test = [], []
+    for span in spans:
+        held_out = np.arange(len(span)) % test_interval == 0
+        if len(span) < 2:
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.num-tasks {num_tasks} is too large for {num_frames} frames: "
+                "a task needs at least one training and one test frame"
+            )
+        train.append(span[~held_out])
+        test.append(span[held_out])
+    return TaskSplit(train_frames=tuple(train), test_frames=tuple(test))

@@ -1,0 +1,115 @@
+"""`continual-demo`: a procedurally generated room with exact poses, rendered once and cached on disk."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from PIL import Image
+
+from continual_nerf.dataparsers import demo_scene
+from continual_nerf.errors import ContinualConfigError
+
+SCENE_SCALE = 0.1
+"""Metres to scene units: the 20 m room fits nerfstudio's [-1, 1] box."""
+
+
+@dataclass
+class ContinualDemoDataParserConfig(DataParserConfig):
+    """A camera walking along a textured room, generated from a seed (no download, exact poses)."""
+
+    _target: Type = field(default_factory=lambda: ContinualDemoDataParser)
+    data: Path = Path("data/continual-demo")
+    """Folder the rendered scene is written to, and reused from when it already holds the same scene."""
+    num_frames: int = 120
+    """Number of frames along the camera path, in capture order."""
+    width: int = 64
+    """Image width in pixels."""
+    height: int = 48
+    """Image height in pixels."""
+    fov_degrees: float = 70.0
+    """Horizontal field of view of the camera."""
+    seed: int = 0
+    """Seed of the crate layout and of the wobble of the camera path."""
+
+
+class ContinualDemoDataParser(DataParser):
+    """Renders the demo room with its own ray caster; every split returns the whole trajectory."""
+
+    config: ContinualDemoDataParserConfig
+
+    def _validate(self) -> None:
+        for name in ("num_frames", "width", "height"):
+            if getattr(self.config, name) < 1:
+                option = name.replace("_", "-")
+                raise ContinualConfigError(f"continual-demo --{option} must be at least 1, got {getattr(self.config, name)}")
+        if not 0 < self.config.fov_degrees < 180:
+            raise ContinualConfigError(f"continual-demo --fov-degrees must be in (0, 180), got {self.config.fov_degrees}")
+
+    def _scene_folder(self) -> Path:
+        c = self.config
+        return c.data / f"room_{c.width}x{c.height}_{c.num_frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
+
+    def _focal(self) -> float:
+        return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
+
+    def _render_scene(self, folder: Path, poses: np.ndarray, crates: list[demo_scene.Crate]) -> None:
+        """Render every frame into a temporary folder, then rename it into place."""
+        c = self.config
+        partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
+        shutil.rmtree(partial, ignore_errors=True)
+        (partial / "images").mkdir(parents=True)
+        focal = self._focal()
+        frames = []
+        for i, c2w in enumerate(poses):
+            image = demo_scene.render_view(c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, crates)
+            Image.fromarray(image).save(partial / "images" / f"frame_{i:05d}.png")
+            frames.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()})
+        transforms = {"fl_x": focal, "fl_y": focal, "cx": c.width / 2, "cy": c.height / 2, "w": c.width, "h": c.height}
+        (partial / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}, indent=1))
+        if folder.exists():
+            shutil.rmtree(partial)
+        else:
+            os.replace(partial, folder)
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        self._validate()
+        c = self.config
+        rng = np.random.default_rng(c.seed)
+        crates = demo_scene.make_crates(rng)
+        poses = demo_scene.camera_path(c.num_frames, rng)
+        folder = self._scene_folder()
+        if not (folder / "transforms.json").exists():
+            self._render_scene(folder, poses, crates)
+        centre = (demo_scene.ROOM_MIN + demo_scene.ROOM_MAX) / 2
+        scaled = poses.copy()
+        scaled[:, :, 3] = (poses[:, :, 3] - centre) * SCENE_SCALE
+        focal = self._focal()
+        cameras = Cameras(
+            camera_to_worlds=torch.from_numpy(scaled).float(),
+            fx=focal,
+            fy=focal,
+            cx=c.width / 2,
+            cy=c.height / 2,
+            width=c.width,
+            height=c.height,
+            camera_type=CameraType.PERSPECTIVE,
+        )
+        transform = torch.eye(4)[:3]
+        transform[:, 3] = torch.from_numpy(-centre).float()
+        return DataparserOutputs(
+            image_filenames=[folder / "images" / f"frame_{i:05d}.png" for i in range(c.num_frames)],
+            cameras=cameras,
+            scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
+            dataparser_transform=transform,
+            dataparser_scale=SCENE_SCALE,
+        )

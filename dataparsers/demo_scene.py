@@ -1,0 +1,147 @@
+"""A procedural textured corridor-room and an exact ray caster for it (numpy only).
+
+The camera walks along the room's long axis looking at one side wall, so consecutive tasks
+see overlapping, and distant tasks disjoint, parts of the scene: the setting in which a
+NeRF trained task by task forgets. Poses are exact; colours come from analytic textures.
+"""
+
+from __future__ import annotations
+
+import colorsys
+from dataclasses import dataclass
+
+import numpy as np
+
+ROOM_MIN = np.array([-10.0, -2.5, 0.0])
+ROOM_MAX = np.array([10.0, 2.5, 3.0])
+EYE_HEIGHT = 1.5
+
+
+@dataclass(frozen=True)
+class Crate:
+    """An axis-aligned box standing on the floor."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    rgb: np.ndarray
+
+
+def make_crates(rng: np.random.Generator, count: int = 14) -> list[Crate]:
+    """Crates spread along both long walls, each with its own colour."""
+    crates = []
+    for i, x in enumerate(np.linspace(ROOM_MIN[0] + 1.0, ROOM_MAX[0] - 1.0, count)):
+        side = 1.0 if i % 2 == 0 else -1.0
+        size = rng.uniform([0.4, 0.4, 0.4], [0.9, 0.8, 1.6])
+        y_wall = ROOM_MAX[1] if side > 0 else ROOM_MIN[1]
+        y_centre = y_wall - side * (size[1] / 2 + rng.uniform(0.05, 0.6))
+        lo = np.array([x + rng.uniform(-0.4, 0.4) - size[0] / 2, y_centre - size[1] / 2, 0.0])
+        hue = rng.uniform(0.0, 1.0)
+        crates.append(Crate(lo=lo, hi=lo + size, rgb=np.array(colorsys.hsv_to_rgb(hue, 0.7, 0.9))))
+    return crates
+
+
+def camera_path(num_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """Camera-to-world matrices (num_frames, 3, 4), OpenGL convention, in capture order."""
+    t = np.linspace(0.0, 1.0, num_frames)
+    x = ROOM_MIN[0] + 1.5 + t * (ROOM_MAX[0] - ROOM_MIN[0] - 3.0)
+    phase = rng.uniform(0, 2 * np.pi, size=3)
+    y = -0.9 + 0.3 * np.sin(2 * np.pi * 2 * t + phase[0])
+    z = EYE_HEIGHT + 0.15 * np.sin(2 * np.pi * 3 * t + phase[1])
+    yaw = np.pi / 2 + np.deg2rad(30.0) * np.sin(2 * np.pi * 4 * t + phase[2])
+    pitch = np.deg2rad(-12.0 + 6.0 * np.sin(2 * np.pi * 5 * t))
+    forward = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=-1)
+    right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
+    right /= np.linalg.norm(right, axis=-1, keepdims=True)
+    up = np.cross(right, forward)
+    return np.stack([right, up, -forward, np.stack([x, y, z], axis=-1)], axis=-1)
+
+
+def _checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
+    return ((np.floor(u / period) + np.floor(v / period)) % 2).astype(np.float64)
+
+
+def _hue_along_room(x: np.ndarray, saturation: float, value: float) -> np.ndarray:
+    """Colour that drifts with the position along the room, so tasks differ in colour too."""
+    hue = (x - ROOM_MIN[0]) / (ROOM_MAX[0] - ROOM_MIN[0]) * 0.85
+    return np.stack([np.array(colorsys.hsv_to_rgb(h, saturation, value)) for h in hue.ravel()]).reshape(*x.shape, 3)
+
+
+def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> np.ndarray:
+    """Texture of the room's walls, floor and ceiling at hit points."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    colour = np.empty_like(points)
+    side = axis == 1
+    base = _hue_along_room(x, 0.55, 0.95)
+    stripes = 0.75 + 0.25 * np.sin(2 * np.pi * x / 0.37) * np.sin(2 * np.pi * z / 0.29)
+    tiles = 0.65 + 0.35 * _checker(x, z, 0.5)
+    colour[side] = base[side] * (tiles * stripes)[side, None]
+    floor = (axis == 2) & ~positive
+    floor_base = _hue_along_room(-x, 0.35, 0.8)
+    colour[floor] = floor_base[floor] * (0.55 + 0.45 * _checker(x, y, 0.8))[floor, None]
+    ceiling = (axis == 2) & positive
+    colour[ceiling] = (0.8 + 0.15 * np.sin(2 * np.pi * x / 2.0))[ceiling, None] * np.array([0.95, 0.93, 0.88])
+    ends = axis == 0
+    colour[ends] = np.where(positive[ends, None], [[0.2, 0.3, 0.8]], [[0.8, 0.3, 0.2]]) * (
+        0.7 + 0.3 * _checker(y, z, 0.4)
+    )[ends, None]
+    return colour
+
+
+def _intersect_room(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance to the room's inside, the axis of the wall hit and whether it is the max side."""
+    with np.errstate(divide="ignore"):
+        t_axis = np.where(dirs > 0, (ROOM_MAX - origins) / dirs, (ROOM_MIN - origins) / dirs)
+    t_axis = np.where(dirs == 0, np.inf, t_axis)
+    axis = np.argmin(t_axis, axis=-1)
+    rows = np.arange(len(axis))
+    return t_axis[rows, axis], axis, dirs[rows, axis] > 0
+
+
+def _intersect_crate(origins: np.ndarray, dirs: np.ndarray, crate: Crate) -> tuple[np.ndarray, np.ndarray]:
+    """Entry distance (inf when missed) and the axis of the face hit."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (crate.lo - origins) / dirs
+        t2 = (crate.hi - origins) / dirs
+    t_near_axes = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf)
+    t_far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf).min(axis=-1)
+    t_near = t_near_axes.max(axis=-1)
+    hit = (t_near < t_far) & (t_near > 1e-4)
+    return np.where(hit, t_near, np.inf), np.argmax(t_near_axes, axis=-1)
+
+
+def cast_rays(origins: np.ndarray, dirs: np.ndarray, crates: list[Crate]) -> np.ndarray:
+    """RGB in [0, 1] seen along each ray (N, 3)."""
+    t, axis, positive = _intersect_room(origins, dirs)
+    colour = _room_colour(origins + t[:, None] * dirs, axis, positive)
+    shade = np.array([0.85, 1.0, 0.75])[axis]
+    for crate in crates:
+        t_crate, crate_axis = _intersect_crate(origins, dirs, crate)
+        nearer = t_crate < t
+        if not nearer.any():
+            continue
+        t = np.where(nearer, t_crate, t)
+        points = origins[nearer] + t_crate[nearer, None] * dirs[nearer]
+        rel = (points - crate.lo) / (crate.hi - crate.lo)
+        edge = np.minimum(rel, 1 - rel)
+        edge[np.arange(len(edge)), crate_axis[nearer]] = 1.0
+        border = np.where(edge.min(axis=-1) < 0.08, 0.45, 1.0)
+        colour[nearer] = crate.rgb * border[:, None]
+        shade[nearer] = np.array([0.8, 0.95, 1.0])[crate_axis[nearer]]
+    return np.clip(colour * shade[:, None], 0.0, 1.0)
+
+
+def render_view(
+    c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int, crates: list[Crate]
+) -> np.ndarray:
+    """Render one view as uint8 (height, width, 3), 2x2 supersampled against aliasing."""
+    samples = 2
+    offsets = (np.arange(samples) + 0.5) / samples
+    u = (np.arange(width)[:, None] + offsets[None, :]).ravel()
+    v = (np.arange(height)[:, None] + offsets[None, :]).ravel()
+    uu, vv = np.meshgrid(u, v)
+    dirs_cam = np.stack([(uu - cx) / fx, -(vv - cy) / fy, -np.ones_like(uu)], axis=-1).reshape(-1, 3)
+    dirs = dirs_cam @ c2w[:, :3].T
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    origins = np.broadcast_to(c2w[:, 3], dirs.shape)
+    rgb = cast_rays(origins, dirs, crates).reshape(height, samples, width, samples, 3).mean(axis=(1, 3))
+    return np.round(rgb * 255).astype(np.uint8)
