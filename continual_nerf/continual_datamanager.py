@@ -122,19 +122,23 @@ class ContinualDataManager(VanillaDataManager):
     def is_last_task(self) -> bool:
         return self.current_task == self.num_tasks - 1
 
+    def _image_scale(self) -> float:
+        """The datamanager's resolution scale times the dataparser's downscale (capture parsers set one)."""
+        return self.config.camera_res_scale_factor * self.train_dataparser_outputs.metadata.get("image_scale_factor", 1.0)
+
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
         self.task_split = split_into_tasks(len(outputs.image_filenames), self.config.num_tasks, self.config.test_interval)
         return ContinualDataset(
             subset_outputs(outputs, self.task_split.all_train_frames()),
             self.task_split.train_task_of_frame(),
-            scale_factor=self.config.camera_res_scale_factor,
+            scale_factor=self._image_scale(),
         )
 
     def create_eval_dataset(self) -> InputDataset:
         return InputDataset(
             subset_outputs(self.train_dataparser_outputs, self.task_split.all_test_frames()),
-            scale_factor=self.config.camera_res_scale_factor,
+            scale_factor=self._image_scale(),
         )
 
     def setup_train(self) -> None:

@@ -1,0 +1,128 @@
+"""What every real-capture dataparser shares: frame selection, pose checks and scene normalisation.
+
+A reader turns its dataset into `CaptureFrames` (metric camera-to-world poses in nerfstudio's OpenGL
+convention, in capture order); `capture_outputs` turns those into nerfstudio's DataparserOutputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import List, Literal, Optional, Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras import camera_utils
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from continual_nerf.errors import ContinualConfigError, DatasetError
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Right-multiplied onto an OpenCV camera-to-world matrix (looks down +z, +y down) gives OpenGL's."""
+
+
+@dataclass
+class CaptureDataParserConfig(DataParserConfig):
+    """Options every real-capture dataparser has."""
+
+    _target: Type = field(default_factory=lambda: None)
+    data: Path = Path()
+    """Folder (or file) of the capture."""
+    frame_stride: int = 1
+    """Keep every n-th frame of the capture (the paper uses 100 to 300 frames per trajectory)."""
+    max_frames: Optional[int] = None
+    """Keep at most this many frames, from the start of the capture, after the stride."""
+    downscale_factor: int = 1
+    """Divide image width and height by this factor when the images are loaded."""
+    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    """How nerfstudio's auto_orient_and_center_poses turns the scene before it is scaled."""
+    scene_scale: float = 1.0
+    """Extra factor on top of the automatic scale that fits all camera centres into [-1, 1]."""
+
+    def check_options(self) -> None:
+        for name in ("frame_stride", "downscale_factor"):
+            if getattr(self, name) < 1:
+                raise ContinualConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ContinualConfigError(f"--max-frames must be at least 1, got {self.max_frames}")
+
+
+@dataclass
+class CaptureFrames:
+    """Frames of a capture in capture order, in metric world units."""
+
+    image_filenames: List[Path]
+    camera_to_worlds: np.ndarray
+    """(N, 4, 4) float64 camera-to-world, OpenGL convention."""
+    fx: np.ndarray
+    fy: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+    distortion: Optional[np.ndarray] = None
+    """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2], or None for undistorted images."""
+
+    def __len__(self) -> int:
+        return len(self.image_filenames)
+
+    def select(self, keep: np.ndarray) -> "CaptureFrames":
+        """The frames at indices `keep`, in that order."""
+        picked = {
+            name: getattr(self, name)[keep] for name in ("camera_to_worlds", "fx", "fy", "cx", "cy", "width", "height")
+        }
+        distortion = None if self.distortion is None else self.distortion[keep]
+        return replace(self, image_filenames=[self.image_filenames[i] for i in keep], distortion=distortion, **picked)
+
+
+def check_pose(matrix: np.ndarray, source: str) -> None:
+    """Reject a pose with NaN/inf entries or whose rotation block is not a rotation."""
+    if not np.isfinite(matrix).all():
+        raise DatasetError(f"{source}: pose has NaN or infinite entries")
+    rotation = matrix[:3, :3]
+    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-3)):
+        raise DatasetError(f"{source}: pose is not a rigid transform (its 3x3 block is not a rotation)")
+
+
+def select_frames(frames: CaptureFrames, config: CaptureDataParserConfig) -> CaptureFrames:
+    """Apply the stride and the frame cap; an empty selection is an error naming the capture."""
+    keep = np.arange(0, len(frames), config.frame_stride)
+    if config.max_frames is not None:
+        keep = keep[: config.max_frames]
+    if len(keep) == 0:
+        raise DatasetError(f"{config.data}: the capture has no usable frames")
+    return frames.select(keep)
+
+
+def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> DataparserOutputs:
+    """Select, orient, centre and scale the frames into nerfstudio's box; DataparserOutputs in capture order."""
+    config.check_options()
+    frames = select_frames(frames, config)
+    poses = torch.from_numpy(frames.camera_to_worlds).double()
+    oriented, transform = camera_utils.auto_orient_and_center_poses(poses, method=config.orientation_method)
+    scale = config.scene_scale / max(float(oriented[:, :3, 3].abs().max()), 1e-6)
+    oriented[:, :3, 3] *= scale
+    distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()
+    cameras = Cameras(
+        camera_to_worlds=oriented[:, :3, :4].float(),
+        fx=torch.from_numpy(frames.fx).float()[:, None],
+        fy=torch.from_numpy(frames.fy).float()[:, None],
+        cx=torch.from_numpy(frames.cx).float()[:, None],
+        cy=torch.from_numpy(frames.cy).float()[:, None],
+        width=torch.from_numpy(frames.width).long()[:, None],
+        height=torch.from_numpy(frames.height).long()[:, None],
+        distortion_params=distortion,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order")
+    return DataparserOutputs(
+        image_filenames=frames.image_filenames,
+        cameras=cameras,
+        scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
+        dataparser_transform=transform.float(),
+        dataparser_scale=scale,
+        metadata={"image_scale_factor": 1.0 / config.downscale_factor},
+    )
