@@ -17,12 +17,11 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
-from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.models.base_model import Model
 
-from continual_nerf.continual_dataset import ContinualDataset
+from continual_nerf.continual_dataset import ContinualDataset, TestFrameDataset
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.replay_oracle import ReplayOracle
 from continual_nerf.errors import ContinualConfigError
@@ -95,7 +94,7 @@ class ContinualDataManager(VanillaDataManager):
 
     config: ContinualDataManagerConfig
     train_dataset: ContinualDataset
-    eval_dataset: InputDataset
+    eval_dataset: TestFrameDataset
     task_split: TaskSplit
 
     def __init__(
@@ -135,8 +134,8 @@ class ContinualDataManager(VanillaDataManager):
             scale_factor=self._image_scale(),
         )
 
-    def create_eval_dataset(self) -> InputDataset:
-        return InputDataset(
+    def create_eval_dataset(self) -> TestFrameDataset:
+        return TestFrameDataset(
             subset_outputs(self.train_dataparser_outputs, self.task_split.all_test_frames()),
             scale_factor=self._image_scale(),
         )

@@ -9,6 +9,9 @@ import numpy.typing as npt
 import torch
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from PIL import UnidentifiedImageError
+
+from continual_nerf.errors import DatasetError
 
 
 class ClosedTaskError(PermissionError):
@@ -55,9 +58,25 @@ class ContinualDataset(InputDataset):
                 f"frame {image_idx} ({self._dataparser_outputs.image_filenames[image_idx]}) belongs to task {task + 1}; "
                 f"only the open task's pixels are readable (open: {None if self.open_task is None else self.open_task + 1})"
             )
-        return super().get_numpy_image(image_idx)
+        return read_image(self, image_idx)
 
     def open_task_pixel_range(self) -> tuple[int, int]:
         """Flat pixel numbers [start, end) covered by the open task."""
         frames = self.frames_of_task(self.open_task)
         return int(self.pixel_offsets[frames[0]]), int(self.pixel_offsets[frames[-1] + 1])
+
+
+class TestFrameDataset(InputDataset):
+    """Held-out test frames: read by the evaluation only, never by training."""
+
+    def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+        return read_image(self, image_idx)
+
+
+def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
+    """nerfstudio's image read, with a missing, unreadable or truncated file reported by name in one line."""
+    filename = dataset._dataparser_outputs.image_filenames[image_idx]
+    try:
+        return InputDataset.get_numpy_image(dataset, image_idx)
+    except (OSError, UnidentifiedImageError, ValueError, AssertionError) as error:
+        raise DatasetError(f"{filename}: cannot read image ({str(error).splitlines()[0]})") from None

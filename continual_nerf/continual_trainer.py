@@ -28,3 +28,9 @@ class ContinualTrainer(Trainer):
             super().setup(test_mode)
         except ContinualNerfError as error:
             raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+
+    def train(self) -> None:
+        try:
+            super().train()
+        except ContinualNerfError as error:  # for instance an image of a task released mid-run cannot be read
+            raise SystemExit(f"{self.config.method_name}: error: {error}") from None

@@ -1,0 +1,76 @@
+"""Shared fixtures: tiny continual-ngp configurations that train in seconds on a CPU."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable
+
+import pytest
+import torch
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
+
+from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import continual_ngp
+
+DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
+
+
+def tiny_config(
+    output_dir: Path,
+    dataparser: DataParserConfig,
+    num_tasks: int = 2,
+    iterations_per_task: int = 3,
+    rays_per_batch: int = 256,
+    replay: bool = True,
+    small_model: bool = True,
+) -> ContinualTrainerConfig:
+    """continual-ngp on CPU with tensorboard only (no viewer) and, by default, a small hash grid."""
+    config = dataclasses.replace(continual_ngp.config)
+    config.machine.device_type = "cpu"
+    config.vis = "tensorboard"
+    config.output_dir = output_dir
+    config.steps_per_eval_batch = 10**9
+    config.steps_per_eval_image = 10**9
+    config.logging.local_writer.enable = False
+    pipeline = dataclasses.replace(config.pipeline)
+    pipeline.datamanager = dataclasses.replace(
+        pipeline.datamanager,
+        dataparser=dataparser,
+        num_tasks=num_tasks,
+        iterations_per_task=iterations_per_task,
+        train_num_rays_per_batch=rays_per_batch,
+        replay=replay,
+    )
+    if small_model:
+        pipeline.model = dataclasses.replace(
+            pipeline.model, num_levels=8, log2_hashmap_size=14, max_res=128, num_nerf_samples_per_ray=16,
+            num_proposal_samples_per_ray=(32,), eval_num_rays_per_chunk=4096,
+        )
+    config.pipeline = pipeline
+    config.set_timestamp()
+    return config
+
+
+def demo_parser(num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0) -> ContinualDemoDataParserConfig:
+    return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=width, height=height, seed=seed)
+
+
+def train(config: ContinualTrainerConfig, seed: int = 0) -> ContinualTrainer:
+    """Set up and run nerfstudio's Trainer as `ns-train` does; returns it for inspection."""
+    torch.manual_seed(seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+@pytest.fixture
+def run_dir(tmp_path: Path) -> Path:
+    return tmp_path / "outputs"
+
+
+@pytest.fixture
+def tiny() -> Callable[..., ContinualTrainerConfig]:
+    return tiny_config
