@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Dict, Tuple, Type
+from typing import Dict, Iterator, Tuple, Type
 from unittest import mock
 
 import torch
@@ -52,6 +53,13 @@ class _LPIPSNotComputed(nn.Module):
         return torch.tensor(float("nan"))
 
 
+@contextmanager
+def without_lpips() -> Iterator[None]:
+    """Build nerfacto-family models offline: their set-up constructs LPIPS, which downloads AlexNet weights."""
+    with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
+        yield
+
+
 class ContinualNGPModel(NerfactoModel):
     """Nerfacto's field, sampler and renderers; the loss splits into Eq. 4's pixel and distillation terms."""
 
@@ -59,7 +67,7 @@ class ContinualNGPModel(NerfactoModel):
 
     def populate_modules(self) -> None:
         # nothing may download at run time, and this model reports PSNR and SSIM only
-        with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
+        with without_lpips():
             super().populate_modules()
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:

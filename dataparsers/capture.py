@@ -101,8 +101,14 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     """Select, orient, centre and scale the frames into nerfstudio's box; DataparserOutputs in capture order."""
     config.check_options()
     frames = select_frames(frames, config)
-    poses = torch.from_numpy(frames.camera_to_worlds).double()
-    oriented, transform = camera_utils.auto_orient_and_center_poses(poses, method=config.orientation_method)
+    # recentre in float64 first: nerfstudio's orientation runs in float32, and world coordinates can be kilometres
+    origin = frames.camera_to_worlds[:, :3, 3].mean(axis=0)
+    recentred = frames.camera_to_worlds.copy()
+    recentred[:, :3, 3] -= origin
+    oriented, transform = camera_utils.auto_orient_and_center_poses(
+        torch.from_numpy(recentred).float(), method=config.orientation_method
+    )
+    transform[:, 3] -= transform[:, :3] @ torch.from_numpy(origin).float()
     scale = config.scene_scale / max(float(oriented[:, :3, 3].abs().max()), 1e-6)
     oriented[:, :3, 3] *= scale
     distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()

@@ -1,0 +1,49 @@
+"""The split of a trajectory into contiguous tasks with held-out test frames."""
+
+import numpy as np
+import pytest
+
+from continual_nerf.errors import ContinualConfigError
+from continual_nerf.task_schedule import split_into_tasks
+
+
+@pytest.mark.parametrize("num_frames,num_tasks,interval", [(120, 10, 8), (37, 5, 8), (10, 5, 2), (9, 1, 3)])
+def test_split_is_contiguous_ordered_complete_and_holds_out_test_frames(num_frames, num_tasks, interval):
+    split = split_into_tasks(num_frames, num_tasks, interval)
+    assert split.num_tasks == num_tasks
+    everything = np.sort(np.concatenate([split.all_train_frames(), split.all_test_frames()]))
+    assert np.array_equal(everything, np.arange(num_frames)), "every frame is in exactly one set"
+    assert not set(split.all_train_frames()) & set(split.all_test_frames()), "test frames are never trained on"
+    assert np.all(np.diff(split.all_train_frames()) > 0), "training frames stay in capture order"
+    spans = [np.concatenate([tr, te]) for tr, te in zip(split.train_frames, split.test_frames)]
+    for task, span in enumerate(spans):
+        assert np.array_equal(np.sort(span), np.arange(span.min(), span.max() + 1)), "a task is a contiguous span"
+        assert len(split.test_frames[task]) >= 1 and len(split.train_frames[task]) >= 1
+        if task:
+            assert span.min() == spans[task - 1].max() + 1, "tasks follow each other in capture order"
+    sizes = [len(t) for t in split.train_frames]
+    assert max(sizes) - min(sizes) <= 2, "tasks are of near-equal size"
+
+
+def test_every_interval_th_frame_of_a_task_is_held_out():
+    split = split_into_tasks(40, 2, 8)
+    assert split.test_frames[0].tolist() == [0, 8, 16]
+    assert split.test_frames[1].tolist() == [20, 28, 36]
+    assert split.test_task_of_frame().tolist() == [0, 0, 0, 1, 1, 1]
+
+
+@pytest.mark.parametrize(
+    "num_frames,num_tasks,interval,message",
+    [
+        (10, 0, 8, "num-tasks must be at least 1, got 0"),
+        (10, -3, 8, "num-tasks must be at least 1, got -3"),
+        (10, 6, 8, "num-tasks 6 is too large for 10 frames"),
+        (10, 11, 8, "num-tasks 11 is too large for 10 frames"),
+        (0, 2, 8, "the dataset has no frames"),
+        (10, 2, 1, "test-interval must be at least 2"),
+    ],
+)
+def test_bad_splits_are_one_line_errors(num_frames, num_tasks, interval, message):
+    with pytest.raises(ContinualConfigError, match=message) as error:
+        split_into_tasks(num_frames, num_tasks, interval)
+    assert "\n" not in str(error.value)
