@@ -4,6 +4,9 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
+from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
+from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
+from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 
 continual_demo = DataParserSpecification(
     config=ContinualDemoDataParserConfig(),
@@ -14,4 +17,19 @@ continual_nerfstudio = DataParserSpecification(
     config=OrderedCaptureDataParserConfig(),
     description="A nerfstudio transforms.json or COLMAP capture (Tanks and Temples, ...) in capture order: "
     "timestamps, numbers in file names, or file order.",
+)
+
+continual_scannet = DataParserSpecification(
+    config=ContinualScanNetDataParserConfig(),
+    description="A ScanNet scene in capture order: SensReader's exported folder or the raw .sens file (read streaming).",
+)
+
+continual_tum = DataParserSpecification(
+    config=ContinualTumDataParserConfig(),
+    description="A TUM RGB-D sequence in capture order, images posed from groundtruth.txt by timestamp.",
+)
+
+continual_waymo = DataParserSpecification(
+    config=WaymoDataParserConfig(),
+    description="A Waymo Open Dataset segment (v2 Parquet root or v1 .tfrecord), chosen cameras split by time.",
 )

@@ -105,9 +105,10 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     origin = frames.camera_to_worlds[:, :3, 3].mean(axis=0)
     recentred = frames.camera_to_worlds.copy()
     recentred[:, :3, 3] -= origin
-    oriented, transform = camera_utils.auto_orient_and_center_poses(
-        torch.from_numpy(recentred).float(), method=config.orientation_method
-    )
+    poses = torch.from_numpy(recentred).float()
+    _, transform = camera_utils.auto_orient_and_center_poses(poses, method=config.orientation_method)
+    # nerfstudio 1.1.5's "pca" flips whole poses instead of two axes; the transform it returns is right
+    oriented = transform @ poses
     transform[:, 3] -= transform[:, :3] @ torch.from_numpy(origin).float()
     scale = config.scene_scale / max(float(oriented[:, :3, 3].abs().max()), 1e-6)
     oriented[:, :3, 3] *= scale

@@ -1,0 +1,311 @@
+"""`continual-scannet`: a ScanNet scene in capture order, from SensReader's exported folder or its raw `.sens` file.
+
+A `.sens` file holds several GB of frames: it is read streaming (headers and poses only, seeking past the
+image bytes), and the JPEG bytes of the selected frames are copied once into a cache folder so the
+images load lazily from disk like those of an exported folder.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, List, Optional, Sequence, Tuple, Type
+
+import numpy as np
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
+from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image, UnidentifiedImageError
+
+from continual_nerf.dataparsers.capture import (
+    OPENCV_TO_OPENGL,
+    CaptureDataParserConfig,
+    CaptureFrames,
+    capture_outputs,
+    check_pose,
+    select_frames,
+)
+from continual_nerf.errors import DatasetError
+
+SENS_VERSION = 4
+SENS_CALIBRATION = struct.Struct("<64f2i4IfQ")
+"""After version and sensor name: colour/depth intrinsics and extrinsics, compressions, sizes, depth shift, frames."""
+SENS_FRAME = struct.Struct("<16f4Q")
+"""Per-frame header: camera-to-world, colour and depth timestamps, colour and depth byte counts."""
+COLOR_COMPRESSION = {-1: "unknown", 0: "raw", 1: "png", 2: "jpeg"}
+
+
+@dataclass
+class ContinualScanNetDataParserConfig(CaptureDataParserConfig):
+    """A ScanNet scene in capture order: SensReader's exported folder or the raw `<scene>.sens` file."""
+
+    _target: Type = field(default_factory=lambda: ContinualScanNetDataParser)
+    data: Path = Path("data/scannet/scene0101_00")
+    """Exported scene folder (color/, pose/, intrinsic/), a raw `<scene>.sens` file, or a folder holding one."""
+    sens_frames_cache: Optional[Path] = None
+    """Folder the colour JPEGs of a .sens file are extracted to (default: `<scene>_sens_frames/` beside it)."""
+
+
+@dataclass
+class SensFrame:
+    """Where one frame's colour JPEG sits in a .sens file, and its pose."""
+
+    index: int
+    camera_to_world: np.ndarray
+    """(4, 4) float64 camera-to-world, OpenCV convention, metres."""
+    color_offset: int
+    color_size: int
+
+
+@dataclass
+class SensIndex:
+    """What a streaming pass over a .sens file learns: calibration, image size and every frame's pose."""
+
+    intrinsic_color: np.ndarray
+    width: int
+    height: int
+    frames: List[SensFrame]
+
+
+def index_ranges(indices: Sequence[int]) -> str:
+    """`[3, 4, 5, 9]` -> `3-5, 9`: names many frames in one short line."""
+    ranges: List[List[int]] = []
+    for index in indices:
+        if ranges and index == ranges[-1][1] + 1:
+            ranges[-1][1] = index
+        else:
+            ranges.append([index, index])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in ranges)
+
+
+def tracking_lost(pose: np.ndarray) -> bool:
+    """ScanNet marks frames where its tracker lost the camera with -inf pose entries."""
+    return bool(np.isneginf(pose).any())
+
+
+def warn_lost_frames(source: Path, lost: List[int]) -> None:
+    """One warning line naming every frame skipped for a lost pose."""
+    if lost:
+        frames = f"{index_ranges(lost)} ({len(lost)} in all)"
+        message = f"{source}: skipping frames whose pose is -inf (tracking lost): {frames}"
+        # markup off: a path may hold square brackets
+        CONSOLE.print(message, style="bold yellow", markup=False, soft_wrap=True)
+
+
+def read_matrix(path: Path) -> np.ndarray:
+    """A whitespace-separated 4x4 text matrix (a pose or an intrinsic file)."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing")
+    try:
+        matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as error:
+        raise DatasetError(f"{path}: not a 4x4 matrix of numbers ({str(error).splitlines()[0]})") from None
+    if matrix.shape != (4, 4):
+        raise DatasetError(f"{path}: expected a 4x4 matrix, found shape {matrix.shape[0]}x{matrix.shape[1]}")
+    return matrix
+
+
+def check_intrinsics(intrinsic: np.ndarray, source: str) -> None:
+    """fx, fy, cx, cy of a 4x4 intrinsic matrix must be finite and positive."""
+    focal_and_centre = intrinsic[[0, 1, 0, 1], [0, 1, 2, 2]]
+    if not (np.isfinite(focal_and_centre).all() and (focal_and_centre > 0).all()):
+        raise DatasetError(f"{source}: intrinsics fx, fy, cx, cy must be positive, got {focal_and_centre.tolist()}")
+
+
+def image_size(path: Path) -> Tuple[int, int]:
+    """Width and height from the image header (PIL does not decode the pixels for this)."""
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, UnidentifiedImageError) as error:
+        raise DatasetError(f"{path}: cannot read image ({str(error).splitlines()[0]})") from None
+
+
+def build_frames(
+    image_filenames: List[Path], poses_opencv: List[np.ndarray], intrinsic: np.ndarray, width: int, height: int
+) -> CaptureFrames:
+    """CaptureFrames of one camera with shared intrinsics; poses converted to OpenGL."""
+    count = len(image_filenames)
+    camera_to_worlds = np.stack(poses_opencv) @ OPENCV_TO_OPENGL
+
+    def repeat(value: float) -> np.ndarray:
+        return np.full(count, value, dtype=np.float64)
+
+    return CaptureFrames(
+        image_filenames=image_filenames,
+        camera_to_worlds=camera_to_worlds,
+        fx=repeat(intrinsic[0, 0]),
+        fy=repeat(intrinsic[1, 1]),
+        cx=repeat(intrinsic[0, 2]),
+        cy=repeat(intrinsic[1, 2]),
+        width=repeat(width).astype(np.int64),
+        height=repeat(height).astype(np.int64),
+    )
+
+
+def read_exported_folder(folder: Path) -> CaptureFrames:
+    """color/<i>.jpg with pose/<i>.txt in numeric order of i; frames with a -inf pose are skipped."""
+    color_dir, pose_dir = folder / "color", folder / "pose"
+    for required in (color_dir, pose_dir):
+        if not required.is_dir():
+            raise DatasetError(f"{required}: missing folder (an exported ScanNet scene has color/, pose/, intrinsic/)")
+    intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
+    intrinsic = read_matrix(intrinsic_file)
+    check_intrinsics(intrinsic, str(intrinsic_file))
+    # SensReader writes 0.jpg, 1.jpg, ... without padding: a string sort would put 10 before 2
+    images = sorted((p for p in color_dir.glob("*.jpg") if p.stem.isdigit()), key=lambda p: int(p.stem))
+    if not images:
+        raise DatasetError(f"{color_dir}: no colour frames named <index>.jpg")
+    kept, poses, lost = [], [], []
+    for image in images:
+        pose_file = pose_dir / f"{image.stem}.txt"
+        pose = read_matrix(pose_file)
+        if tracking_lost(pose):
+            lost.append(int(image.stem))
+            continue
+        check_pose(pose, str(pose_file))
+        kept.append(image)
+        poses.append(pose)
+    warn_lost_frames(pose_dir, lost)
+    if not kept:
+        raise DatasetError(f"{pose_dir}: every frame's pose is -inf (tracking lost)")
+    width, height = image_size(kept[0])
+    CONSOLE.log(f"{folder}: exported ScanNet scene, {len(kept)} frames with a pose", markup=False)
+    return build_frames(kept, poses, intrinsic, width, height)
+
+
+def read_exact(sens: BinaryIO, size: int, path: Path, what: str) -> bytes:
+    """`size` bytes, or an error saying the file ends inside `what`."""
+    data = sens.read(size)
+    if len(data) < size:
+        raise DatasetError(f"{path}: truncated .sens file (it ends inside {what})")
+    return data
+
+
+def read_sens_index(path: Path) -> SensIndex:
+    """One streaming pass: the header, then each frame's pose and byte counts, seeking past the image bytes."""
+    try:
+        sens_file = path.open("rb")
+    except OSError as error:
+        raise DatasetError(f"{path}: cannot open ({error.strerror})") from None
+    file_size = path.stat().st_size
+    with sens_file as sens:
+        (version,) = struct.unpack("<I", read_exact(sens, 4, path, "the header"))
+        if version != SENS_VERSION:
+            raise DatasetError(
+                f"{path}: not a ScanNet .sens file of version {SENS_VERSION} (version field is {version})"
+            )
+        (name_length,) = struct.unpack("<Q", read_exact(sens, 8, path, "the header"))
+        if name_length > file_size:
+            raise DatasetError(
+                f"{path}: truncated .sens file (sensor name of {name_length} bytes in a {file_size}-byte file)"
+            )
+        sens.seek(name_length, os.SEEK_CUR)
+        calibration = SENS_CALIBRATION.unpack(read_exact(sens, SENS_CALIBRATION.size, path, "the header"))
+        intrinsic_color = np.array(calibration[:16], dtype=np.float64).reshape(4, 4)
+        color_compression, _, width, height, _, _, _, num_frames = calibration[64:]
+        if color_compression != 2:
+            kind = COLOR_COMPRESSION.get(color_compression, f"code {color_compression}")
+            raise DatasetError(
+                f"{path}: colour frames are {kind}-compressed; only jpeg colour .sens files are supported"
+            )
+        check_intrinsics(intrinsic_color, f"{path} header")
+        frames = []
+        for index in range(num_frames):
+            values = SENS_FRAME.unpack(read_exact(sens, SENS_FRAME.size, path, f"frame {index} of {num_frames}"))
+            color_offset = sens.tell()
+            color_size, depth_size = values[18], values[19]
+            end = color_offset + color_size + depth_size
+            if end > file_size:
+                raise DatasetError(
+                    f"{path}: truncated .sens file "
+                    f"(frame {index} of {num_frames} needs {end} bytes, the file has {file_size})"
+                )
+            pose = np.array(values[:16], dtype=np.float64).reshape(4, 4)
+            frames.append(SensFrame(index, pose, color_offset, color_size))
+            sens.seek(end)
+    return SensIndex(intrinsic_color, width, height, frames)
+
+
+def is_cached(target: Path, size: int) -> bool:
+    """Files appear in the cache only by rename, so one of the right size is a complete copy."""
+    return target.is_file() and target.stat().st_size == size
+
+
+def cached_jpeg(cache: Path, frame: SensFrame) -> Path:
+    """Named like SensReader's export, so both layouts share file names."""
+    return cache / f"{frame.index}.jpg"
+
+
+def extract_colour_frames(path: Path, cache: Path, frames: List[SensFrame]) -> None:
+    """Copy each frame's JPEG bytes from the .sens file to its cache file, unless already there."""
+    missing = [frame for frame in frames if not is_cached(cached_jpeg(cache, frame), frame.color_size)]
+    if not missing:
+        return
+    CONSOLE.log(f"{path}: extracting {len(missing)} colour frames to {cache}", markup=False)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        with path.open("rb") as sens:
+            for frame in missing:
+                target = cached_jpeg(cache, frame)
+                sens.seek(frame.color_offset)
+                # a killed extraction leaves at most a .partial file, never a short JPEG under the final name
+                partial = target.with_name(f"{target.name}.partial-{os.getpid()}")
+                partial.write_bytes(sens.read(frame.color_size))
+                os.replace(partial, target)
+    except OSError as error:
+        raise DatasetError(f"{cache}: cannot write the extracted colour frames ({error.strerror or error})") from None
+
+
+def find_source(data: Path) -> Path:
+    """The exported folder or the .sens file that `data` names."""
+    if data.is_file():
+        if data.suffix != ".sens":
+            raise DatasetError(f"{data}: neither a .sens file nor an exported ScanNet folder")
+        return data
+    if not data.is_dir():
+        raise DatasetError(f"{data}: no such file or folder")
+    if (data / "color").is_dir():
+        return data
+    sens_files = sorted(data.glob("*.sens"))
+    if len(sens_files) != 1:
+        found = "no .sens file" if not sens_files else f"{len(sens_files)} .sens files"
+        raise DatasetError(f"{data}: no color/ folder and {found}; point --data at an exported scene or one .sens file")
+    return sens_files[0]
+
+
+class ContinualScanNetDataParser(DataParser):
+    """Reads a ScanNet scene; every split returns the whole trajectory (the datamanager splits it into tasks)."""
+
+    config: ContinualScanNetDataParserConfig
+
+    def _sens_cache(self, sens_path: Path) -> Path:
+        if self.config.sens_frames_cache is not None:
+            return self.config.sens_frames_cache
+        return sens_path.with_name(f"{sens_path.stem}_sens_frames")
+
+    def _read_sens(self, path: Path) -> CaptureFrames:
+        """Frames of a .sens file whose images are extracted to the cache, for the selected frames only."""
+        index = read_sens_index(path)
+        cache = self._sens_cache(path)
+        usable = [frame for frame in index.frames if not tracking_lost(frame.camera_to_world)]
+        warn_lost_frames(path, [frame.index for frame in index.frames if tracking_lost(frame.camera_to_world)])
+        if not usable:
+            raise DatasetError(f"{path}: every frame's pose is -inf (tracking lost)")
+        for frame in usable:
+            check_pose(frame.camera_to_world, f"{path} frame {frame.index}")
+        by_file = {cached_jpeg(cache, frame): frame for frame in usable}
+        frames = build_frames(
+            list(by_file), [frame.camera_to_world for frame in usable], index.intrinsic_color, index.width, index.height
+        )
+        CONSOLE.log(f"{path}: ScanNet .sens file, {len(usable)} frames with a pose", markup=False)
+        selected = select_frames(frames, self.config)
+        extract_colour_frames(path, cache, [by_file[target] for target in selected.image_filenames])
+        return frames
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        self.config.check_options()
+        source = find_source(self.config.data)
+        frames = self._read_sens(source) if source.is_file() else read_exported_folder(source)
+        return capture_outputs(frames, self.config)

@@ -1,0 +1,277 @@
+"""continual-tum on a generated sequence in TUM RGB-D's own layout, with a known continuous trajectory."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import pytest
+from conftest import tiny_config, train
+from nerfstudio.data.dataparsers.base_dataparser import transform_poses_to_original_space
+from PIL import Image
+
+from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
+from continual_nerf.errors import ContinualConfigError, DatasetError
+
+WIDTH, HEIGHT = 32, 24
+START = 1305031102.0
+"""Timestamps are seconds since the Unix epoch, as in the dataset."""
+AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+IMAGE_TIMES = START + 0.0047 + np.arange(12) / 30
+"""30 Hz images; the first three come before the ground truth starts."""
+POSE_TIMES = START + 0.1 + np.arange(51) / 100
+"""100 Hz ground truth from 0.1 s to 0.6 s."""
+
+
+def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def angle_at(t: float) -> float:
+    return 0.3 + 2.0 * (t - START)
+
+
+def pose_at(t: float) -> np.ndarray:
+    """OpenCV camera-to-world at time t: constant velocity, constant turn rate about a fixed axis."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation(AXIS, angle_at(t))
+    pose[:3, 3] = [1.0 + 2.0 * (t - START), -0.5 + 1.0 * (t - START), 1.2 - 0.8 * (t - START)]
+    return pose
+
+
+def groundtruth_line(t: float, scale: float = 1.0) -> str:
+    """`timestamp tx ty tz qx qy qz qw`, scalar last; `scale` makes the quaternion non-unit."""
+    half = angle_at(t) / 2
+    quaternion = scale * np.array([*(AXIS * np.sin(half)), np.cos(half)])
+    return " ".join(f"{v:.9f}" for v in [t, *pose_at(t)[:3, 3], *quaternion])
+
+
+def write_sequence(
+    folder: Path,
+    image_times: np.ndarray = IMAGE_TIMES,
+    pose_times: np.ndarray = POSE_TIMES,
+    groundtruth_lines: Optional[List[str]] = None,
+) -> Path:
+    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each."""
+    (folder / "rgb").mkdir(parents=True)
+    rgb_lines = ["# color images", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
+    for i, t in enumerate(image_times):
+        pixels = np.random.default_rng(i).integers(0, 255, size=(HEIGHT, WIDTH, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(folder / "rgb" / f"{t:.6f}.png")
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    header = ["# ground truth trajectory", "# file: 'rgbd_dataset.bag'", "# timestamp tx ty tz qx qy qz qw"]
+    body = groundtruth_lines if groundtruth_lines is not None else [groundtruth_line(t) for t in pose_times]
+    (folder / "groundtruth.txt").write_text("\n".join(header + body) + "\n")
+    return folder
+
+
+def parse(data: Path, **options):
+    return ContinualTumDataParserConfig(data=data, **options).setup().get_dataparser_outputs(split="train")
+
+
+def original_poses(outputs) -> np.ndarray:
+    """Undo the dataparser's orientation, centring and scale: metric OpenGL camera-to-world (N, 3, 4)."""
+    poses = transform_poses_to_original_space(
+        outputs.cameras.camera_to_worlds.double(),
+        outputs.dataparser_transform.double(),
+        outputs.dataparser_scale,
+        "opengl",
+    )
+    return poses.numpy()
+
+
+def opengl(poses: List[np.ndarray]) -> np.ndarray:
+    return (np.stack(poses) @ OPENCV_TO_OPENGL)[:, :3, :4]
+
+
+def console_text(capsys) -> str:
+    return " ".join(capsys.readouterr().out.split())
+
+
+@pytest.fixture
+def sequence(tmp_path) -> Path:
+    return write_sequence(tmp_path / "rgbd_dataset_freiburg1_desk")
+
+
+def test_nearest_association_poses_order_and_dropped_images(sequence, capsys):
+    outputs = parse(sequence)
+    kept = IMAGE_TIMES[3:]
+    assert outputs.image_filenames == [sequence / "rgb" / f"{t:.6f}.png" for t in kept]
+    nearest = [POSE_TIMES[np.argmin(np.abs(POSE_TIMES - t))] for t in kept]
+    assert np.allclose(original_poses(outputs), opengl([pose_at(t) for t in nearest]), atol=1e-5)
+    text = console_text(capsys)
+    assert (
+        f"{sequence / 'rgb.txt'}: dropping 3 of 12 images with no ground-truth pose within 0.02 s (nearest): " in text
+    )
+    assert f"{IMAGE_TIMES[0]:.6f}.png, {IMAGE_TIMES[1]:.6f}.png, {IMAGE_TIMES[2]:.6f}.png" in text
+
+
+def test_interpolation_recovers_the_pose_at_each_image_time(sequence):
+    outputs = parse(sequence, association="interpolate")
+    kept = IMAGE_TIMES[3:]
+    assert len(outputs.image_filenames) == len(kept)
+    assert np.allclose(original_poses(outputs), opengl([pose_at(t) for t in kept]), atol=1e-5)
+
+
+def test_images_beyond_the_ground_truth_span_are_not_interpolated(tmp_path):
+    # last pose 0.002 s before the last image: near enough for nearest, but nothing to interpolate towards
+    folder = write_sequence(tmp_path / "rgbd_dataset_freiburg1_xyz", pose_times=START + np.arange(38) / 100)
+    assert len(parse(folder).image_filenames) == 12
+    assert len(parse(folder, association="interpolate").image_filenames) == 11
+
+
+def test_quaternions_are_scalar_last_and_normalised(tmp_path):
+    """qx qy qz qw = (0, 0, s, s), scaled: 90 degrees about z, so the camera's +x axis points along world +y."""
+    lines = [f"{START + i * 0.01:.6f} {i} 0 0 0 0 3 3" for i in range(20)]
+    folder = write_sequence(
+        tmp_path / "rgbd_dataset_freiburg2_desk", image_times=START + np.arange(5) / 30, groundtruth_lines=lines
+    )
+    rotations = original_poses(parse(folder))[:, :3, :3]
+    assert np.allclose(rotations[:, :, 0], [0, 1, 0], atol=1e-6), "camera x (right) along world +y"
+    assert np.allclose(rotations[:, :, 2], [0, 0, -1], atol=1e-6), "OpenCV +z forward along world +z: OpenGL +z is -z"
+
+
+def test_rgb_txt_out_of_time_order_is_read_in_capture_order(sequence):
+    rgb_file = sequence / "rgb.txt"
+    lines = rgb_file.read_text().splitlines()
+    rgb_file.write_text("\n".join(lines[:3] + lines[3:][::-1]) + "\n")
+    outputs = parse(sequence)
+    assert outputs.image_filenames == [sequence / "rgb" / f"{t:.6f}.png" for t in IMAGE_TIMES[3:]]
+
+
+@pytest.mark.parametrize(
+    "sensor,intrinsics,distortion",
+    [
+        ("freiburg1", (517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, 1.1633, 0.0, -0.0054, 0.0026)),
+        ("freiburg2", (520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, 0.9172, 0.0, -0.0033, -0.0001)),
+        ("freiburg3", (535.4, 539.2, 320.1, 247.6), None),
+        ("kinect", (525.0, 525.0, 319.5, 239.5), None),
+    ],
+)
+def test_intrinsics_and_distortion_follow_the_sensor_in_the_folder_name(
+    tmp_path, capsys, sensor, intrinsics, distortion
+):
+    folder = write_sequence(tmp_path / f"rgbd_dataset_{sensor}_desk")
+    cameras = parse(folder).cameras
+    for values, expected in zip((cameras.fx, cameras.fy, cameras.cx, cameras.cy), intrinsics):
+        assert np.allclose(values.numpy(), expected)
+    assert (cameras.width == WIDTH).all() and (cameras.height == HEIGHT).all(), "size from the image header"
+    if distortion is None:
+        assert cameras.distortion_params is None
+    else:
+        assert np.allclose(cameras.distortion_params.numpy(), distortion), "nerfstudio order [k1, k2, k3, k4, p1, p2]"
+    warned = "no freiburg1/2/3 in the folder name; using the ROS default intrinsics" in console_text(capsys)
+    assert warned == (sensor == "kinect")
+
+
+def test_user_intrinsics_override_the_sensor_and_silence_the_warning(tmp_path, capsys):
+    folder = write_sequence(tmp_path / "my_capture")
+    cameras = parse(folder, fx=30.0, fy=31.0, cx=16.0, cy=12.5, distortion=(0.1, -0.2, 0.003, 0.004, 0.05)).cameras
+    assert np.allclose(cameras.fx.numpy(), 30.0) and np.allclose(cameras.fy.numpy(), 31.0)
+    assert np.allclose(cameras.cx.numpy(), 16.0) and np.allclose(cameras.cy.numpy(), 12.5)
+    assert np.allclose(cameras.distortion_params.numpy(), [0.1, -0.2, 0.05, 0.0, 0.003, 0.004])
+    assert "ROS default" not in console_text(capsys)
+    fr1 = parse(write_sequence(tmp_path / "rgbd_dataset_freiburg1_room"), fx=40.0).cameras
+    assert np.allclose(fr1.fx.numpy(), 40.0) and np.allclose(fr1.fy.numpy(), 516.5), "only the given values change"
+
+
+def test_zero_length_quaternion_names_the_file_and_line(sequence):
+    groundtruth = sequence / "groundtruth.txt"
+    lines = groundtruth.read_text().splitlines()
+    lines[8] = " ".join(lines[8].split()[:4] + ["0", "0", "0", "0"])
+    groundtruth.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=f"^{groundtruth}, line 9: quaternion qx qy qz qw has zero length$"):
+        parse(sequence)
+
+
+def test_no_image_near_any_pose_is_an_error(tmp_path):
+    folder = write_sequence(tmp_path / "rgbd_dataset_freiburg1_desk", pose_times=START + 10 + np.arange(20) / 100)
+    with pytest.raises(
+        DatasetError, match=f"^{folder / 'groundtruth.txt'}: no image in rgb.txt has a pose within 0.02 s"
+    ):
+        parse(folder)
+
+
+def test_the_tolerance_is_a_config_field(sequence):
+    with pytest.raises(DatasetError, match="no image in rgb.txt has a pose within 0.001 s"):
+        parse(sequence, max_time_difference=0.001)
+    assert len(parse(sequence, max_time_difference=0.2).image_filenames) == 12
+
+
+@pytest.mark.parametrize(
+    "remove,message",
+    [
+        ("", "no such folder"),
+        ("rgb.txt", "missing"),
+        ("groundtruth.txt", "missing"),
+    ],
+)
+def test_missing_folder_or_list_files_are_named(tmp_path, sequence, remove, message):
+    if remove:
+        (sequence / remove).unlink()
+        target = sequence / remove
+        data = sequence
+    else:
+        target = data = tmp_path / "nowhere"
+    with pytest.raises(DatasetError, match=f"^{target}: {message}$"):
+        parse(data)
+
+
+def test_missing_image_names_it_and_its_rgb_txt_line(sequence):
+    image = sequence / "rgb" / f"{IMAGE_TIMES[5]:.6f}.png"
+    image.unlink()
+    with pytest.raises(DatasetError, match=f"^{image}: missing \\(listed in {sequence / 'rgb.txt'}, line 9\\)$"):
+        parse(sequence)
+
+
+@pytest.mark.parametrize(
+    "file,line,message",
+    [
+        ("groundtruth.txt", "1305031102.2 1 2 3 0 0 0", "line 6: expected 8 fields, found 7"),
+        (
+            "groundtruth.txt",
+            "1305031102.2 1 2 x 0 0 0 1",
+            "line 6: expected numbers, found '1305031102.2 1 2 x 0 0 0 1'",
+        ),
+        ("groundtruth.txt", "1305031102.2 1 2 nan 0 0 0 1", "line 6: pose has NaN or infinite entries"),
+        ("rgb.txt", "soon rgb/a.png", "line 6: expected numbers, found 'soon'"),
+    ],
+)
+def test_malformed_lines_name_the_file_and_line(sequence, file, line, message):
+    path = sequence / file
+    lines = path.read_text().splitlines()
+    lines[5] = line
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=f"^{path}, {message}$"):
+        parse(sequence)
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"max_time_difference": -0.1}, "--max-time-difference must be >= 0 seconds, got -0.1"),
+        ({"fx": 0.0}, "--fx must be positive, got 0.0"),
+        ({"max_frames": 0}, "--max-frames must be at least 1, got 0"),
+    ],
+)
+def test_bad_options_are_config_errors(sequence, options, message):
+    with pytest.raises(ContinualConfigError, match=message):
+        parse(sequence, **options)
+
+
+def test_short_continual_ngp_run_on_a_distorted_sequence(sequence):
+    # freiburg1's distortion with intrinsics scaled to the 32x24 fixture images
+    parser = ContinualTumDataParserConfig(data=sequence, association="interpolate", fx=25.9, fy=25.8, cx=15.9, cy=12.8)
+    config = tiny_config(sequence.parent / "outputs", parser, num_tasks=2, iterations_per_task=2)
+    trainer = train(config)
+    datamanager = trainer.pipeline.datamanager
+    assert datamanager.current_task == 1
+    assert datamanager.train_dataset.cameras.distortion_params is not None
+    transforms = json.loads((trainer.base_dir / "dataparser_transforms.json").read_text())
+    assert transforms["scale"] == pytest.approx(datamanager.train_dataparser_outputs.dataparser_scale)

@@ -1,0 +1,515 @@
+"""continual-waymo: the real Waymo files, generated v1 (.tfrecord) and v2 (Parquet) segments, and bad input."""
+
+from __future__ import annotations
+
+import io
+import struct
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from conftest import tiny_config, train
+from PIL import Image
+
+from continual_nerf.dataparsers.tfrecord import Message, crc32c, masked_crc32c
+from continual_nerf.dataparsers.waymo_dataparser import (
+    CAMERA_IDS,
+    EXTRINSIC,
+    HEIGHT,
+    IMAGE,
+    IMAGE_POSE,
+    INTRINSIC,
+    TIMESTAMP,
+    VEHICLE_POSE,
+    WIDTH,
+    WaymoDataParserConfig,
+    capture_frames,
+    read_segment,
+    read_vehicle_poses,
+)
+from continual_nerf.errors import ContinualConfigError, DatasetError
+
+WAYMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo"
+REAL_V1 = WAYMO / "v1_one_frame_five_cameras.tfrecord"
+REAL_V2_VEHICLE_POSE = WAYMO / "v2_vehicle_pose_199_frames.parquet"
+SEGMENT = "4242_000_020_000"
+CAMERAS = list(CAMERA_IDS)
+WORLD_ORIGIN = np.array([-25211.0, 42391.0, -161.0])
+"""Where the generated segments drive: world coordinates as large as Waymo's."""
+NUM_TIMES = 6
+TIMES = [1_553_735_853_000_000 + 100_000 * i for i in range(NUM_TIMES)]
+
+
+# ---- known geometry of the generated segments ----
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rigid(rotation: np.ndarray, translation) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = rotation, translation
+    return matrix
+
+
+def vehicle_pose(i: int) -> np.ndarray:
+    """The vehicle drives forward while it turns left."""
+    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i, 0.4 * i, 0.01 * i])
+
+
+def image_pose(i: int, camera: str) -> np.ndarray:
+    """Each camera's own pose: the vehicle a few cm further on (rolling shutter), different per camera."""
+    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i + 0.01 * CAMERA_IDS[camera], 0.4 * i, 0.01 * i])
+
+
+EXTRINSICS = {
+    "FRONT": rigid(rotation_z(0.0), [1.5, 0.0, 2.1]),
+    "FRONT_LEFT": rigid(rotation_z(np.pi / 4), [1.5, 0.1, 2.1]),
+    "FRONT_RIGHT": rigid(rotation_z(-np.pi / 4), [1.5, -0.1, 2.1]),
+    "SIDE_LEFT": rigid(rotation_z(np.pi / 2), [1.4, 0.1, 2.1]),
+    "SIDE_RIGHT": rigid(rotation_z(-np.pi / 2), [1.4, -0.1, 2.1]),
+}
+SIZES = {
+    "FRONT": (16, 12),
+    "FRONT_LEFT": (16, 12),
+    "FRONT_RIGHT": (16, 12),
+    "SIDE_LEFT": (16, 8),
+    "SIDE_RIGHT": (16, 8),
+}
+
+
+def intrinsic(camera: str) -> List[float]:
+    """[f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3], different per camera."""
+    width, height = SIZES[camera]
+    n = CAMERA_IDS[camera]
+    return [20.0 + n, 21.0 + n, width / 2 + 0.1 * n, height / 2, 0.01 * n, -0.002, 0.001, -0.001, 0.0005 * n]
+
+
+def jpeg(camera: str, i: int) -> bytes:
+    """A tiny image whose colour encodes camera and time."""
+    buffer = io.BytesIO()
+    Image.new("RGB", SIZES[camera], (40 * CAMERA_IDS[camera], 30 * i, 128)).save(buffer, format="JPEG")
+    return buffer.getvalue()
+
+
+def expected_camera_to_world(pose: np.ndarray, camera: str, reference: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world, written out from the axis facts: GL x = -y_cam, GL y = z_cam, GL z = -x_cam."""
+    waymo = pose @ EXTRINSICS[camera]
+    gl = np.eye(4)
+    gl[:3, 0], gl[:3, 1], gl[:3, 2] = -waymo[:3, 1], waymo[:3, 2], -waymo[:3, 0]
+    gl[:3, 3] = waymo[:3, 3] - reference
+    return gl
+
+
+def assert_known_segment(config: WaymoDataParserConfig, pose_of, times: List[int], cameras: List[str]) -> None:
+    """Images in time order with every camera at each time, cameras in config order, known poses and intrinsics."""
+    segment = read_segment(config)
+    frames = capture_frames(segment)
+    assert segment.timestamps.tolist() == [TIMES[i] for i in times for _ in cameras]
+    assert segment.cameras == [camera for _ in times for camera in cameras]
+    reference = pose_of(times[0], cameras[0])[:3, 3]
+    expected = [expected_camera_to_world(pose_of(i, camera), camera, reference) for i in times for camera in cameras]
+    np.testing.assert_allclose(frames.camera_to_worlds, np.stack(expected), atol=1e-6)
+    calibrations = np.array([intrinsic(camera) for _ in times for camera in cameras])
+    np.testing.assert_allclose(np.stack([frames.fx, frames.fy, frames.cx, frames.cy], axis=1), calibrations[:, :4])
+    np.testing.assert_allclose(frames.distortion, calibrations[:, [4, 5, 8, 8, 6, 7]] * [1, 1, 1, 0, 1, 1])
+    for path, camera, timestamp in zip(frames.image_filenames, segment.cameras, segment.timestamps):
+        with Image.open(path) as image:
+            colour = np.asarray(image.convert("RGB"))[2, 2]
+        assert abs(int(colour[0]) - 40 * CAMERA_IDS[camera]) < 8
+        assert abs(int(colour[1]) - 30 * TIMES.index(timestamp)) < 8
+    np.testing.assert_array_equal(frames.width, [SIZES[camera][0] for camera in segment.cameras])
+    np.testing.assert_array_equal(frames.height, [SIZES[camera][1] for camera in segment.cameras])
+
+
+# ---- version 2 fixture: Parquet with Waymo's column names ----
+
+
+def transform_column(matrices: List[Optional[np.ndarray]], fixed_size: bool = True) -> pa.Array:
+    """16 doubles per row; Waymo writes fixed-size lists, which pyarrow cannot read back with nulls in them."""
+    values = [None if m is None else m.ravel().tolist() for m in matrices]
+    return pa.array(values, type=pa.list_(pa.float64(), 16 if fixed_size else -1))
+
+
+def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_poses: bool = True) -> Path:
+    """A v2 root of one segment: camera images shuffled over several row groups, one image without its own pose."""
+    rows = [(i, camera) for i in range(NUM_TIMES) for camera in CAMERAS]
+    rows = [rows[k] for k in np.random.default_rng(0).permutation(len(rows))]
+    own_pose = [image_poses and (i, camera) != (1, "SIDE_LEFT") for i, camera in rows]
+    images = {
+        "key.segment_context_name": pa.array([SEGMENT] * len(rows)),
+        TIMESTAMP: pa.array([TIMES[i] for i, _ in rows], type=pa.int64()),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for _, camera in rows], type=pa.int8()),
+        IMAGE: pa.array([jpeg(camera, i) for i, camera in rows], type=pa.binary()),
+        IMAGE_POSE: transform_column([image_pose(i, c) if own else None for (i, c), own in zip(rows, own_pose)], False),
+        "[CameraImageComponent].pose_timestamp": pa.array([TIMES[i] / 1e6 for i, _ in rows]),
+    }
+    calibration = {
+        "key.segment_context_name": pa.array([SEGMENT] * len(CAMERAS)),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in CAMERAS], type=pa.int8()),
+        **{name: pa.array([intrinsic(camera)[k] for camera in CAMERAS]) for k, name in enumerate(INTRINSIC)},
+        EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in CAMERAS]),
+        WIDTH: pa.array([SIZES[camera][0] for camera in CAMERAS], type=pa.int32()),
+        HEIGHT: pa.array([SIZES[camera][1] for camera in CAMERAS], type=pa.int32()),
+        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(CAMERAS), type=pa.int8()),
+    }
+    poses = {
+        "key.segment_context_name": pa.array([SEGMENT] * NUM_TIMES),
+        TIMESTAMP: pa.array(TIMES[::-1], type=pa.int64()),
+        VEHICLE_POSE: transform_column([vehicle_pose(i) for i in reversed(range(NUM_TIMES))]),
+    }
+    for component, columns in (("camera_image", images), ("camera_calibration", calibration), ("vehicle_pose", poses)):
+        if not image_poses and component == "camera_image":
+            del columns[IMAGE_POSE]
+        columns.pop((skip_columns or {}).get(component, ""), None)
+        (root / component).mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.table(columns), root / component / f"{SEGMENT}.parquet", row_group_size=7)
+    return root
+
+
+# ---- version 1 fixture: TFRecord framing and protobuf bytes written by hand ----
+
+
+def reference_crc32c(data: bytes) -> int:
+    """Bit by bit, straight from the definition (reflected Castagnoli polynomial)."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def reference_masked(data: bytes) -> int:
+    crc = reference_crc32c(data)
+    return (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF
+
+
+def varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        out.append(value & 0x7F | (0x80 if value > 0x7F else 0))
+        value >>= 7
+        if not value:
+            return bytes(out)
+
+
+def field(number: int, payload) -> bytes:
+    """A varint field for an int, a length-delimited one for bytes."""
+    if isinstance(payload, int):
+        return varint(number << 3) + varint(payload)
+    return varint(number << 3 | 2) + varint(len(payload)) + payload
+
+
+def doubles(number: int, values, packed: bool) -> bytes:
+    values = [float(v) for v in values]
+    if packed:
+        return field(number, struct.pack(f"<{len(values)}d", *values))
+    return b"".join(varint(number << 3 | 1) + struct.pack("<d", v) for v in values)
+
+
+def transform(matrix: np.ndarray) -> bytes:
+    return doubles(1, matrix.ravel(), packed=True)
+
+
+def v1_frame(i: int, cameras: List[str]) -> bytes:
+    """A Frame: context with calibrations (intrinsics not packed, as in real files), pose, images, unknown fields."""
+    calibrations = b"".join(
+        field(
+            2,
+            field(1, CAMERA_IDS[c])
+            + doubles(2, intrinsic(c), packed=False)
+            + field(3, transform(EXTRINSICS[c]))
+            + field(4, SIZES[c][0])
+            + field(5, SIZES[c][1])
+            + field(6, 2),
+        )
+        for c in cameras
+    )
+    images = b"".join(
+        field(
+            4,
+            field(1, CAMERA_IDS[c])
+            + field(2, jpeg(c, i))
+            + (b"" if (i, c) == (1, "SIDE_LEFT") else field(3, transform(image_pose(i, c))))
+            + doubles(5, [TIMES[i] / 1e6], packed=False),
+        )
+        for c in reversed(cameras)
+    )
+    lasers = field(5, field(1, 1) + field(2, bytes(300)))
+    return (
+        field(1, field(1, SEGMENT.encode()) + calibrations)
+        + field(2, TIMES[i])
+        + field(3, transform(vehicle_pose(i)))
+        + images
+        + lasers
+    )
+
+
+def tfrecord(records: List[bytes]) -> bytes:
+    out = b""
+    for data in records:
+        length = struct.pack("<Q", len(data))
+        out += length + struct.pack("<I", reference_masked(length)) + data + struct.pack("<I", reference_masked(data))
+    return out
+
+
+def write_v1(path: Path, times: Sequence[int] = range(NUM_TIMES)) -> Path:
+    path.write_bytes(tfrecord([v1_frame(i, CAMERAS) for i in times]))
+    return path
+
+
+def fixture_pose(i: int, camera: str) -> np.ndarray:
+    """Both fixtures give every image its own pose but SIDE_LEFT's at time 1, which takes the frame's."""
+    return vehicle_pose(i) if (i, camera) == (1, "SIDE_LEFT") else image_pose(i, camera)
+
+
+def config(data: Path, cache: Optional[Path], **options) -> WaymoDataParserConfig:
+    return WaymoDataParserConfig(data=data, image_cache=cache, **options)
+
+
+# ---- the real files ----
+
+
+def test_real_v1_frame_has_five_cameras_as_formats_md_describes(tmp_path):
+    segment = read_segment(config(REAL_V1, tmp_path))
+    assert segment.cameras == CAMERAS and len(set(segment.timestamps.tolist())) == 1
+    axes = {
+        "FRONT": (1, 0, 0),
+        "FRONT_LEFT": (0.72, 0.70, 0),
+        "FRONT_RIGHT": (0.71, -0.70, 0),
+        "SIDE_LEFT": (0, 1, 0),
+        "SIDE_RIGHT": (0, -1, 0),
+    }
+    frames = capture_frames(segment)
+    vehicle = segment.vehicle_to_world[0].copy()
+    vehicle[:3, 3] = 0.0  # capture_frames recentres on this very pose
+    for camera, c2w in zip(segment.cameras, frames.camera_to_worlds):
+        extrinsic = segment.calibrations[camera].camera_to_vehicle
+        np.testing.assert_allclose(extrinsic[:3, 0], axes[camera], atol=0.04)
+        assert extrinsic[2, 3] == pytest.approx(2.1, abs=0.05)
+        in_vehicle = np.linalg.inv(vehicle) @ c2w
+        np.testing.assert_allclose(-in_vehicle[:3, 2], axes[camera], atol=0.04)  # OpenGL looks down -z
+    np.testing.assert_allclose(segment.vehicle_to_world[0, :3, 3], (-25211, 42391, -161), atol=1.0)
+    np.testing.assert_allclose(segment.calibrations["FRONT"].intrinsic[:4], (2044.5, 2044.5, 949.6, 633.2), atol=0.05)
+    for path, camera, width, height in zip(frames.image_filenames, segment.cameras, frames.width, frames.height):
+        with Image.open(path) as image:  # reads the JPEG header only
+            assert image.format == "JPEG"
+            assert image.size == (width, height) == ((1920, 886) if camera.startswith("SIDE") else (1920, 1280))
+
+
+def test_real_v2_vehicle_poses_in_time_order():
+    timestamps, poses = read_vehicle_poses(REAL_V2_VEHICLE_POSE)
+    assert timestamps.shape == (199,) and poses.shape == (199, 4, 4) and poses.dtype == np.float64
+    assert (np.diff(timestamps) > 0).all()
+    np.testing.assert_allclose(poses[:, 3], np.tile([0, 0, 0, 1.0], (199, 1)))
+
+
+# ---- generated segments ----
+
+
+def test_crc32c_matches_its_definition():
+    assert crc32c(b"123456789") == 0xE3069283
+    rng = np.random.default_rng(1)
+    for size in (0, 1, 3, 8, 255, 256, 257, 1000, 4099):
+        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        assert crc32c(data) == reference_crc32c(data) and masked_crc32c(data) == reference_masked(data)
+
+
+def test_protobuf_reader_reads_every_wire_type():
+    data = field(1, 300) + field(1, 2**64 - 5) + doubles(2, [1.5, -2.0], packed=False) + doubles(2, [3.0], packed=True)
+    data += varint(3 << 3 | 5) + struct.pack("<f", 1.0) + field(4, b"text") + field(5, field(1, 7))
+    message = Message(data, "test")
+    assert message.integer(1) == -5 and message.integer(9, default=4) == 4
+    assert message.doubles(2).tolist() == [1.5, -2.0, 3.0]
+    assert bytes(message.blob(4)) == b"text" and message.message(5).integer(1) == 7 and message.has(3)
+
+
+def test_v2_segment_gives_known_poses_in_time_order_with_all_cameras(tmp_path):
+    data = write_v2(tmp_path / "waymo")
+    assert_known_segment(config(data, tmp_path / "cache"), fixture_pose, list(range(NUM_TIMES)), CAMERAS)
+
+
+def test_v2_without_image_poses_uses_vehicle_poses(tmp_path):
+    data = write_v2(tmp_path / "waymo", image_poses=False)
+    assert_known_segment(
+        config(data, tmp_path / "cache"), lambda i, camera: vehicle_pose(i), list(range(NUM_TIMES)), CAMERAS
+    )
+
+
+def test_v1_segment_gives_known_poses_in_time_order_with_all_cameras(tmp_path):
+    data = write_v1(tmp_path / "segment.tfrecord", times=[3, 0, 1, 2, 5, 4])
+    assert_known_segment(config(data, tmp_path / "cache"), fixture_pose, list(range(NUM_TIMES)), CAMERAS)
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_stride_and_cap_act_on_timestamps_and_only_chosen_images_are_cached(tmp_path, version):
+    data = write_v1(tmp_path / "segment.tfrecord") if version == "v1" else write_v2(tmp_path / "waymo")
+    options = {"frame_stride": 2, "max_frames": 2, "cameras": ("SIDE_LEFT", "FRONT")}
+    assert_known_segment(config(data, tmp_path / "cache", **options), fixture_pose, [0, 2], ["SIDE_LEFT", "FRONT"])
+    assert sorted(p.name for p in (tmp_path / "cache" / SEGMENT).iterdir()) == sorted(
+        f"{TIMES[i]}_{camera}.jpg" for i in (0, 2) for camera in ("SIDE_LEFT", "FRONT")
+    )
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_the_image_cache_is_written_once_and_reused(tmp_path, version):
+    data = write_v1(tmp_path / "segment.tfrecord") if version == "v1" else write_v2(tmp_path / "waymo")
+    first = read_segment(config(data, None, max_frames=2))
+    cache = data.parent / f"{data.name}-images" / SEGMENT
+    assert first.image_filenames[0].parent == cache  # the default cache sits beside the data
+    stamps = {path: path.stat().st_mtime_ns for path in first.image_filenames}
+    first.image_filenames[0].unlink()
+    (cache / "junk.jpg.partial-1").write_bytes(b"half")  # what a killed run leaves behind
+    second = read_segment(config(data, None, max_frames=2))
+    assert second.image_filenames == first.image_filenames and first.image_filenames[0].exists()
+    assert all(path.stat().st_mtime_ns == stamp for path, stamp in list(stamps.items())[1:])
+
+
+def test_parser_outputs_are_the_segment_normalised(tmp_path):
+    parser_config = config(write_v2(tmp_path / "waymo"), tmp_path / "cache")
+    outputs = parser_config.setup().get_dataparser_outputs(split="test")
+    metric = capture_frames(read_segment(parser_config)).camera_to_worlds
+    normalised = outputs.cameras.camera_to_worlds.double().numpy()
+    # one rigid motion and one scale for the whole segment: relative poses survive, lengths scale
+    relative = np.linalg.inv(metric[0]) @ metric
+    np.testing.assert_allclose(normalised[0, :, :3].T @ normalised[:, :, :3], relative[:, :3, :3], atol=1e-5)
+    offsets = np.linalg.norm(normalised[:, :, 3] - normalised[0, :, 3], axis=1)
+    np.testing.assert_allclose(
+        offsets, outputs.dataparser_scale * np.linalg.norm(relative[:, :3, 3], axis=1), atol=1e-5
+    )
+    assert outputs.cameras.distortion_params.shape == (NUM_TIMES * len(CAMERAS), 6)
+
+
+# ---- bad input ----
+
+
+def expect_error(error_type, message: str, parser_config: WaymoDataParserConfig) -> None:
+    with pytest.raises(error_type) as raised:
+        parser_config.setup().get_dataparser_outputs(split="train")
+    assert str(raised.value) == message and "\n" not in message
+
+
+def test_missing_folder_and_files_are_named(tmp_path):
+    expect_error(
+        DatasetError, f"{tmp_path / 'nowhere'}: no such file or folder", config(tmp_path / "nowhere", tmp_path)
+    )
+    (tmp_path / "empty").mkdir()
+    expect_error(
+        DatasetError,
+        f"{tmp_path / 'empty' / 'camera_image'}: folder not found "
+        "(a Waymo v2 root holds camera_image, camera_calibration, vehicle_pose)",
+        config(tmp_path / "empty", tmp_path),
+    )
+    data = write_v2(tmp_path / "waymo")
+    missing = data / "vehicle_pose" / f"{SEGMENT}.parquet"
+    missing.unlink()
+    expect_error(DatasetError, f"{missing}: file not found", config(data, tmp_path))
+
+
+@pytest.mark.parametrize(
+    "component, column",
+    [
+        ("camera_image", IMAGE),
+        ("camera_calibration", WIDTH),
+        ("camera_calibration", INTRINSIC[4]),
+        ("vehicle_pose", VEHICLE_POSE),
+    ],
+)
+def test_parquet_file_missing_a_column_is_named(tmp_path, component, column):
+    data = write_v2(tmp_path / "waymo", skip_columns={component: column})
+    expect_error(DatasetError, f"{data / component / SEGMENT}.parquet: missing column {column}", config(data, tmp_path))
+
+
+def test_missing_calibration_of_a_chosen_camera_is_named(tmp_path):
+    data = tmp_path / "segment.tfrecord"
+    data.write_bytes(tfrecord([v1_frame(0, ["FRONT", "SIDE_LEFT"])]))
+    expect_error(DatasetError, f"{data}: no calibration for camera FRONT_LEFT", config(data, tmp_path))
+
+
+def corrupt(path: Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def test_corrupt_tfrecord_length_and_data_are_named(tmp_path):
+    path = write_v1(tmp_path / "segment.tfrecord", times=[0, 1])
+    second = 12 + len(v1_frame(0, CAMERAS)) + 4
+    corrupt(path, second + 1)  # the second record's length
+    expect_error(
+        DatasetError, f"{path}: record 1 has a corrupt length (its CRC does not match)", config(path, tmp_path)
+    )
+    write_v1(path, times=[0, 1])
+    corrupt(path, second + 9)  # the second record's length CRC
+    expect_error(
+        DatasetError, f"{path}: record 1 has a corrupt length (its CRC does not match)", config(path, tmp_path)
+    )
+    write_v1(path, times=[0, 1])
+    corrupt(path, second + 12 + 500)  # a byte inside the second record's data
+    expect_error(DatasetError, f"{path}: record 1 has corrupt data (its CRC does not match)", config(path, tmp_path))
+
+
+@pytest.mark.parametrize(
+    "keep, message",
+    [(5, "header: 5 of 12 bytes"), (12 + 100, "data: 100 of {size} bytes"), (12, "data: 0 of {size} bytes")],
+)
+def test_truncated_tfrecord_is_named(tmp_path, keep, message):
+    path = write_v1(tmp_path / "segment.tfrecord", times=[0, 1])
+    size = len(v1_frame(1, CAMERAS))
+    second = 12 + len(v1_frame(0, CAMERAS)) + 4
+    path.write_bytes(path.read_bytes()[: second + keep])
+    expect_error(DatasetError, f"{path}: record 1 is truncated ({message.format(size=size)})", config(path, tmp_path))
+
+
+def test_truncated_data_crc_is_named(tmp_path):
+    path = write_v1(tmp_path / "segment.tfrecord", times=[0])
+    path.write_bytes(path.read_bytes()[:-2])
+    expect_error(DatasetError, f"{path}: record 0 is truncated (data CRC: 2 of 4 bytes)", config(path, tmp_path))
+
+
+def test_malformed_protobuf_in_a_sound_record_is_named(tmp_path):
+    path = tmp_path / "segment.tfrecord"
+    path.write_bytes(tfrecord([field(1, field(2, b"\x08\x81"))]))
+    expect_error(
+        DatasetError, f"{path} record 0 field 1 field 2: malformed protobuf (truncated varint)", config(path, tmp_path)
+    )
+
+
+def test_other_files_and_bad_camera_options_are_refused(tmp_path):
+    other = tmp_path / "poses.parquet"
+    other.write_bytes(b"PAR1")
+    expect_error(
+        DatasetError,
+        f"{other}: neither a .tfrecord file (Waymo v1) nor a Waymo v2 root folder",
+        config(other, tmp_path),
+    )
+    data = write_v1(tmp_path / "segment.tfrecord", times=[0])
+    expect_error(
+        ContinualConfigError,
+        "--cameras names a camera twice: FRONT FRONT",
+        config(data, tmp_path, cameras=("FRONT", "FRONT")),
+    )
+    expect_error(ContinualConfigError, "--cameras must name at least one camera", config(data, tmp_path, cameras=()))
+
+
+# ---- training ----
+
+
+def test_short_continual_ngp_run_on_a_v2_segment(tmp_path):
+    parser_config = config(write_v2(tmp_path / "waymo"), tmp_path / "cache")
+    trainer = train(tiny_config(tmp_path / "outputs", parser_config, num_tasks=2, iterations_per_task=2))
+    datamanager = trainer.pipeline.datamanager
+    assert datamanager.current_task == 1
+    # each task spans half the timestamps with every camera's images of them
+    tasks = datamanager.task_split.train_frames + datamanager.task_split.test_frames
+    files = datamanager.train_dataparser_outputs.image_filenames
+    times = [{int(files[i].name.split("_")[0]) for i in np.concatenate(tasks[t::2])} for t in range(2)]
+    assert times == [set(TIMES[:3]), set(TIMES[3:])]
+    cameras = [{files[i].stem.split("_", 1)[1] for i in np.concatenate(tasks[t::2])} for t in range(2)]
+    assert cameras == [set(CAMERAS), set(CAMERAS)]
