@@ -132,6 +132,7 @@ class ContinualDataManager(VanillaDataManager):
             subset_outputs(outputs, self.task_split.all_train_frames()),
             self.task_split.train_task_of_frame(),
             scale_factor=self._image_scale(),
+            for_training=self.test_mode == "val",
         )
 
     def create_eval_dataset(self) -> TestFrameDataset:

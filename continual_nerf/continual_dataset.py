@@ -26,9 +26,17 @@ class ContinualDataset(InputDataset):
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
     """
 
-    def __init__(self, dataparser_outputs: DataparserOutputs, task_of_frame: np.ndarray, scale_factor: float = 1.0):
+    def __init__(
+        self,
+        dataparser_outputs: DataparserOutputs,
+        task_of_frame: np.ndarray,
+        scale_factor: float = 1.0,
+        for_training: bool = True,
+    ):
         super().__init__(dataparser_outputs, scale_factor=scale_factor)
         self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
+        self.for_training = for_training
+        """False once training is over (ns-eval, ns-render, ns-viewer): then every frame is readable."""
         self.open_task: Optional[int] = None
         self.task_pixels: Optional[torch.Tensor] = None
         """Pixels of the open task's frames, flattened and concatenated in frame order (P, 3)."""
@@ -53,7 +61,7 @@ class ContinualDataset(InputDataset):
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         task = int(self.task_of_frame[image_idx])
-        if task != self.open_task:
+        if self.for_training and task != self.open_task:
             raise ClosedTaskError(
                 f"frame {image_idx} ({self._dataparser_outputs.image_filenames[image_idx]}) belongs to task {task + 1}; "
                 f"only the open task's pixels are readable (open: {None if self.open_task is None else self.open_task + 1})"

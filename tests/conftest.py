@@ -60,6 +60,7 @@ def demo_parser(num_frames: int = 16, width: int = 24, height: int = 18, seed: i
 def train(config: ContinualTrainerConfig, seed: int = 0) -> ContinualTrainer:
     """Set up and run nerfstudio's Trainer as `ns-train` does; returns it for inspection."""
     torch.manual_seed(seed)
+    config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     trainer.train()
