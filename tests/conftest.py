@@ -6,8 +6,10 @@ import dataclasses
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import pytest
 import torch
+from nerfstudio.data.dataparsers.base_dataparser import transform_poses_to_original_space
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 
 from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
@@ -55,6 +57,17 @@ def tiny_config(
 
 def demo_parser(num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0) -> ContinualDemoDataParserConfig:
     return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=width, height=height, seed=seed)
+
+
+def original_poses(outputs) -> np.ndarray:
+    """Undo the dataparser's orientation, centring and scale: metric OpenGL camera-to-world (N, 3, 4)."""
+    poses = transform_poses_to_original_space(
+        outputs.cameras.camera_to_worlds.double(),
+        outputs.dataparser_transform.double(),
+        outputs.dataparser_scale,
+        "opengl",
+    )
+    return poses.numpy()
 
 
 def train(config: ContinualTrainerConfig, seed: int = 0) -> ContinualTrainer:

@@ -8,8 +8,7 @@ from typing import List, Optional
 
 import numpy as np
 import pytest
-from conftest import tiny_config, train
-from nerfstudio.data.dataparsers.base_dataparser import transform_poses_to_original_space
+from conftest import original_poses, tiny_config, train
 from PIL import Image
 
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
@@ -73,17 +72,6 @@ def write_sequence(
 
 def parse(data: Path, **options):
     return ContinualTumDataParserConfig(data=data, **options).setup().get_dataparser_outputs(split="train")
-
-
-def original_poses(outputs) -> np.ndarray:
-    """Undo the dataparser's orientation, centring and scale: metric OpenGL camera-to-world (N, 3, 4)."""
-    poses = transform_poses_to_original_space(
-        outputs.cameras.camera_to_worlds.double(),
-        outputs.dataparser_transform.double(),
-        outputs.dataparser_scale,
-        "opengl",
-    )
-    return poses.numpy()
 
 
 def opengl(poses: List[np.ndarray]) -> np.ndarray:
