@@ -127,7 +127,12 @@ class ContinualDataManager(VanillaDataManager):
 
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
-        self.task_split = split_into_tasks(len(outputs.image_filenames), self.config.num_tasks, self.config.test_interval)
+        self.task_split = split_into_tasks(
+            len(outputs.image_filenames),
+            self.config.num_tasks,
+            self.config.test_interval,
+            time_group=outputs.metadata.get("time_group"),
+        )
         return ContinualDataset(
             subset_outputs(outputs, self.task_split.all_train_frames()),
             self.task_split.train_task_of_frame(),

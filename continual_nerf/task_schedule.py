@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -37,11 +38,16 @@ class TaskSplit:
         return np.concatenate(self.test_frames)
 
 
-def split_into_tasks(num_frames: int, num_tasks: int, test_interval: int) -> TaskSplit:
+def split_into_tasks(
+    num_frames: int, num_tasks: int, test_interval: int, time_group: Optional[np.ndarray] = None
+) -> TaskSplit:
     """Cut frames 0..num_frames-1 into num_tasks contiguous spans of near-equal length.
 
     Inside each span, every test_interval-th frame (counting from the span's first frame) is held
     out for testing, so every task has test frames and every test frame lies in its task's span.
+    With `time_group` (frames captured at the same instant by several cameras share a value, in
+    capture order), spans and held-out frames are counted in instants: a task holds every camera's
+    images of its time span and a held-out instant is held out in every camera.
     """
     if num_frames < 1:
         raise ContinualConfigError("the dataset has no frames: nothing to split into tasks")
@@ -51,15 +57,19 @@ def split_into_tasks(num_frames: int, num_tasks: int, test_interval: int) -> Tas
         raise ContinualConfigError(
             f"--pipeline.datamanager.test-interval must be at least 2 (1 would hold out every frame), got {test_interval}"
         )
-    spans = np.array_split(np.arange(num_frames), num_tasks)
+    groups = np.arange(num_frames) if time_group is None else np.unique(np.asarray(time_group), return_inverse=True)[1]
+    spans = np.array_split(np.arange(groups.max() + 1), num_tasks)
     train, test = [], []
     for span in spans:
-        held_out = np.arange(len(span)) % test_interval == 0
         if len(span) < 2:
             raise ContinualConfigError(
-                f"--pipeline.datamanager.num-tasks {num_tasks} is too large for {num_frames} frames: "
+                f"--pipeline.datamanager.num-tasks {num_tasks} is too large for {len(groups)} frames"
+                f"{'' if time_group is None else f' ({groups.max() + 1} instants)'}: "
                 "a task needs at least one training and one test frame"
             )
-        train.append(span[~held_out])
-        test.append(span[held_out])
+        held_out_groups = span[np.arange(len(span)) % test_interval == 0]
+        frames = np.nonzero(np.isin(groups, span))[0]
+        held_out = np.isin(groups[frames], held_out_groups)
+        train.append(frames[~held_out])
+        test.append(frames[held_out])
     return TaskSplit(train_frames=tuple(train), test_frames=tuple(test))

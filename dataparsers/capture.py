@@ -65,6 +65,8 @@ class CaptureFrames:
     height: np.ndarray
     distortion: Optional[np.ndarray] = None
     """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2], or None for undistorted images."""
+    time_group: Optional[np.ndarray] = None
+    """(N,) capture instant of each image for multi-camera rigs: images of one instant stay in one task."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -74,8 +76,10 @@ class CaptureFrames:
         picked = {
             name: getattr(self, name)[keep] for name in ("camera_to_worlds", "fx", "fy", "cx", "cy", "width", "height")
         }
-        distortion = None if self.distortion is None else self.distortion[keep]
-        return replace(self, image_filenames=[self.image_filenames[i] for i in keep], distortion=distortion, **picked)
+        optional = {
+            name: None if getattr(self, name) is None else getattr(self, name)[keep] for name in ("distortion", "time_group")
+        }
+        return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
 
 
 def check_pose(matrix: np.ndarray, source: str) -> None:
@@ -131,5 +135,13 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
         dataparser_transform=transform.float(),
         dataparser_scale=scale,
-        metadata={"image_scale_factor": 1.0 / config.downscale_factor},
+        metadata=_metadata(frames, config),
     )
+
+
+def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> dict:
+    """What the continual datamanager reads besides cameras: the image downscale and the capture instants."""
+    metadata = {"image_scale_factor": 1.0 / config.downscale_factor}
+    if frames.time_group is not None:
+        metadata["time_group"] = torch.from_numpy(np.asarray(frames.time_group)).long()
+    return metadata

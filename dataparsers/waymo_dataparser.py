@@ -427,6 +427,7 @@ def capture_frames(segment: WaymoSegment) -> CaptureFrames:
         width=np.array([calibration.width for calibration in calibrations]),
         height=np.array([calibration.height for calibration in calibrations]),
         distortion=np.stack([k1, k2, k3, np.zeros_like(k1), p1, p2], axis=1),
+        time_group=segment.timestamps,
     )
 
 

@@ -47,3 +47,16 @@ def test_bad_splits_are_one_line_errors(num_frames, num_tasks, interval, message
     with pytest.raises(ContinualConfigError, match=message) as error:
         split_into_tasks(num_frames, num_tasks, interval)
     assert "\n" not in str(error.value)
+
+
+def test_cameras_of_one_instant_stay_in_one_task_and_are_held_out_together():
+    # 3 cameras x 7 instants: 21 images, a task boundary by image count would cut instant 3
+    time_group = np.repeat(np.arange(7), 3)
+    split = split_into_tasks(21, 2, 3, time_group=time_group)
+    for frames in (*split.train_frames, *split.test_frames):
+        assert len(frames) % 3 == 0
+    # instants 0-3 form task 1 (instants 0 and 3 held out), instants 4-6 task 2 (instant 4 held out)
+    assert split.train_frames[0].tolist() == [3, 4, 5, 6, 7, 8]
+    assert split.test_frames[0].tolist() == [0, 1, 2, 9, 10, 11]
+    assert split.train_frames[1].tolist() == list(range(15, 21))
+    assert split.test_frames[1].tolist() == [12, 13, 14]

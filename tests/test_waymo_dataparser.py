@@ -502,14 +502,15 @@ def test_other_files_and_bad_camera_options_are_refused(tmp_path):
 
 
 def test_short_continual_ngp_run_on_a_v2_segment(tmp_path):
-    parser_config = config(write_v2(tmp_path / "waymo"), tmp_path / "cache")
+    # 5 timestamps x 5 cameras: a split by image count would cut the third timestamp's cameras apart
+    parser_config = config(write_v2(tmp_path / "waymo"), tmp_path / "cache", max_frames=5)
     trainer = train(tiny_config(tmp_path / "outputs", parser_config, num_tasks=2, iterations_per_task=2))
     datamanager = trainer.pipeline.datamanager
     assert datamanager.current_task == 1
-    # each task spans half the timestamps with every camera's images of them
+    # each task spans its timestamps with every camera's images of them
     tasks = datamanager.task_split.train_frames + datamanager.task_split.test_frames
     files = datamanager.train_dataparser_outputs.image_filenames
     times = [{int(files[i].name.split("_")[0]) for i in np.concatenate(tasks[t::2])} for t in range(2)]
-    assert times == [set(TIMES[:3]), set(TIMES[3:])]
+    assert times == [set(TIMES[:3]), set(TIMES[3:5])]
     cameras = [{files[i].stem.split("_", 1)[1] for i in np.concatenate(tasks[t::2])} for t in range(2)]
     assert cameras == [set(CAMERAS), set(CAMERAS)]
