@@ -65,3 +65,13 @@ def test_ns_eval_and_ns_render_work_on_the_run(finished_run, tmp_path):
     )
     assert render.returncode == 0, render.stderr[-2000:]
     assert len(list((tmp_path / "renders").rglob("*.jpg")) + list((tmp_path / "renders").rglob("*.png"))) == 14, "the 14 training frames"
+
+
+def test_a_wall_clock_budget_per_task_ends_each_task_and_the_run(run_dir):
+    config = tiny_config(run_dir, demo_parser(num_frames=12), num_tasks=2)
+    config.pipeline.datamanager.seconds_per_task = 1.0
+    trainer = train(config)
+    matrix = trainer.pipeline.accuracy
+    assert matrix.finished and len(matrix.psnr) == 2
+    assert matrix.steps[1] > matrix.steps[0], "task 2 trained for its own second"
+    assert trainer.step == matrix.steps[1], "the run stopped right after the last task"
