@@ -74,4 +74,5 @@ def test_a_wall_clock_budget_per_task_ends_each_task_and_the_run(run_dir):
     matrix = trainer.pipeline.accuracy
     assert matrix.finished and len(matrix.psnr) == 2
     assert matrix.steps[1] > matrix.steps[0], "task 2 trained for its own second"
-    assert trainer.step == matrix.steps[1], "the run stopped right after the last task"
+    # nerfstudio's loop sets the next step before it sees the stop flag
+    assert trainer.step == matrix.steps[1] + 1, "the run stopped right after the last task"
