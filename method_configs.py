@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -10,6 +12,7 @@ from continual_nerf.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.continual_model import ContinualNGPModelConfig
 from continual_nerf.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.streaming_datamanager import StreamingDataManagerConfig
 
 
 def _adam() -> dict:
@@ -35,4 +38,20 @@ continual_ngp = MethodSpecification(
         vis="viewer",
     ),
     description="Instant continual learning of NeRFs (Po et al.): hash grid + replay by distillation, task by task.",
+)
+
+
+def _streaming(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+    """`config` reading its tasks from a capture folder while it is written; every other option stays the same."""
+    config = copy.deepcopy(config)
+    config.method_name = "continual-ngp-stream"
+    rays = config.pipeline.datamanager.train_num_rays_per_batch
+    config.pipeline.datamanager = StreamingDataManagerConfig(train_num_rays_per_batch=rays)
+    return config
+
+
+continual_ngp_stream = MethodSpecification(
+    config=_streaming(continual_ngp.config),
+    description="continual-ngp on a capture folder that is still being written (continual-stream): "
+    "a task opens whenever its frames have arrived.",
 )

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import List
+from typing import List, Literal
+
+from continual_nerf.checkpoints import write_text_atomically
 
 ACCURACY_MATRIX_FILENAME = "accuracy_matrix.json"
+
+RunStatus = Literal["training", "finished", "failed"]
 
 
 @dataclass
@@ -26,6 +29,8 @@ class AccuracyMatrix:
     """Training step at which each row was measured."""
     finished: bool = False
     """Whether every task was trained; a run cut short leaves this false."""
+    status: RunStatus = "training"
+    """training: tasks remain (a killed run stays so); finished: every task trained; failed: ended by an error."""
 
     def add_row(self, psnr: List[float], ssim: List[float], mean_psnr: float, step: int) -> None:
         self.psnr.append(psnr)
@@ -33,14 +38,12 @@ class AccuracyMatrix:
         self.mean_psnr.append(mean_psnr)
         self.steps.append(step)
         self.finished = len(self.psnr) == self.num_tasks
+        self.status = "finished" if self.finished else "training"
 
     def write(self, directory: Path) -> Path:
         """Write atomically (temporary file, then rename) so a kill never leaves a half-written file."""
         path = directory / ACCURACY_MATRIX_FILENAME
-        directory.mkdir(parents=True, exist_ok=True)
-        temporary = path.with_suffix(".json.tmp")
-        temporary.write_text(json.dumps(asdict(self), indent=2))
-        os.replace(temporary, path)
+        write_text_atomically(path, json.dumps(asdict(self), indent=2))
         return path
 
     @classmethod

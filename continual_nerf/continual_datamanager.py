@@ -21,7 +21,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIn
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.models.base_model import Model
 
-from continual_nerf.continual_dataset import ContinualDataset, TestFrameDataset
+from continual_nerf.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.replay_oracle import ReplayOracle
 from continual_nerf.errors import ContinualConfigError
@@ -45,6 +45,8 @@ class ContinualDataManagerConfig(VanillaDataManagerConfig):
     """Wall-clock training seconds per task (the paper's time-constrained setting); overrides iterations_per_task."""
     replay: bool = True
     """Supervise rays of past tasks with the frozen copy of the model (Eq. 4); off trains each task alone."""
+    joint: bool = False
+    """Non-continual upper bound (iNGP*, NeRF*): every task's pixels sampled from the start; same budget and tests."""
 
     def validate(self) -> None:
         """Reject budgets that cannot train, with a one-line message naming the option."""
@@ -110,6 +112,8 @@ class ContinualDataManager(VanillaDataManager):
         self.current_task = 0
         self.task_iterations = 0
         self.task_seconds = 0.0
+        self.next_task_requested = False
+        """Set by the viewer's "Next task now": the open task's budget counts as spent."""
         super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
         self.replay_oracle = ReplayOracle()
 
@@ -120,6 +124,11 @@ class ContinualDataManager(VanillaDataManager):
     @property
     def is_last_task(self) -> bool:
         return self.current_task == self.num_tasks - 1
+
+    @property
+    def data_task(self) -> int:
+        """The train dataset's task whose pixels are open: the current one, or with joint the one of every frame."""
+        return 0 if self.config.joint else self.current_task
 
     def _image_scale(self) -> float:
         """The datamanager's resolution scale times the dataparser's downscale (capture parsers set one)."""
@@ -133,9 +142,10 @@ class ContinualDataManager(VanillaDataManager):
             self.config.test_interval,
             time_group=outputs.metadata.get("time_group"),
         )
+        task_of_frame = self.task_split.train_task_of_frame()
         return ContinualDataset(
             subset_outputs(outputs, self.task_split.all_train_frames()),
-            self.task_split.train_task_of_frame(),
+            np.zeros_like(task_of_frame) if self.config.joint else task_of_frame,  # joint: one task holds every frame
             scale_factor=self._image_scale(),
             for_training=self.test_mode == "val",
         )
@@ -147,8 +157,8 @@ class ContinualDataManager(VanillaDataManager):
         )
 
     def setup_train(self) -> None:
+        # no task opens here: a resumed run learns its task from the checkpoint, and must not read closed tasks' pixels
         self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
-        self.train_dataset.open(self.current_task)
 
     def setup_eval(self) -> None:
         self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
@@ -160,22 +170,31 @@ class ContinualDataManager(VanillaDataManager):
         return torch.as_tensor(self.task_split.test_task_of_frame(), dtype=torch.long)
 
     def seen_test_frames(self) -> torch.Tensor:
-        """Test frames of the tasks released so far."""
-        return torch.nonzero(self.test_task_of_frame() <= self.current_task).view(-1)
+        """Test frames of the tasks released so far (of every task when joint)."""
+        last_seen = self.num_tasks - 1 if self.config.joint else self.current_task
+        return torch.nonzero(self.test_task_of_frame() <= last_seen).view(-1)
+
+    def request_next_task(self) -> None:
+        """End the open task after the current iteration, whatever is left of its budget."""
+        self.next_task_requested = True
 
     def budget_spent(self) -> bool:
+        if self.next_task_requested:
+            return True
         if self.config.seconds_per_task is not None:
             return self.task_seconds >= self.config.seconds_per_task
         return self.task_iterations >= self.config.iterations_per_task
 
     def open_next_task(self, model: Model) -> None:
         """Freeze `model` as the replay oracle, close the current task and release the next one."""
-        if self.config.replay:
+        if self.config.replay and not self.config.joint:
             self.replay_oracle.update(model)
         self.current_task += 1
         self.task_iterations = 0
         self.task_seconds = 0.0
-        self.train_dataset.open(self.current_task)
+        self.next_task_requested = False
+        if self.train_dataset.open_task != self.data_task:  # with joint, every frame stays open
+            self.train_dataset.open(self.data_task)
 
     def sample_pixels(self, num_rays: int) -> torch.Tensor:
         """Flat pixel numbers drawn uniformly over all released tasks (over the open task alone without replay)."""
@@ -191,7 +210,16 @@ class ContinualDataManager(VanillaDataManager):
         width = self.train_dataset.cameras.width.view(-1)[frame].long()
         return torch.stack([frame, local // width, local % width], dim=-1)
 
+    def open_current_task(self) -> None:
+        """Open the task training starts or resumes in, once the images still to be read are known to be readable."""
+        later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
+        check_image_headers(self.train_dataset, later_tasks.tolist())
+        check_image_headers(self.eval_dataset, range(len(self.eval_dataset)))
+        self.train_dataset.open(self.data_task)
+
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+        if self.train_dataset.open_task != self.data_task:
+            self.open_current_task()
         self.train_count += 1
         self.task_iterations += 1
         flat = self.sample_pixels(self.config.train_num_rays_per_batch)
@@ -227,16 +255,33 @@ class ContinualDataManager(VanillaDataManager):
         frame = self._eval_frame(self.eval_count)
         return self.eval_dataset.cameras[frame : frame + 1].to(self.device), self.eval_dataset[frame]
 
+    def schedule(self) -> Dict[str, int]:
+        """What the task split follows from; a checkpoint resumes only into the same split."""
+        return {
+            "num_tasks": self.num_tasks,
+            "test_interval": self.config.test_interval,
+            "num_frames": len(self.train_dataparser_outputs.image_filenames),
+        }
+
+    def check_resumable(self, saved: Dict[str, int]) -> None:
+        """Refuse a checkpoint whose tasks were split differently, naming what differs."""
+        for key, value in self.schedule().items():
+            if saved[key] != value:
+                option = f"--pipeline.datamanager.{key.replace('_', '-')}"
+                what = "frames in the dataset" if key == "num_frames" else option
+                raise ContinualConfigError(f"{what}: the checkpoint was trained with {saved[key]}, this run {value}")
+
     def get_extra_state(self) -> Dict[str, Any]:
         return {
             "current_task": self.current_task,
             "task_iterations": self.task_iterations,
             "task_seconds": self.task_seconds,
+            "schedule": self.schedule(),
         }
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
+        self.check_resumable(state["schedule"])
         self.current_task = int(state["current_task"])
         self.task_iterations = int(state["task_iterations"])
         self.task_seconds = float(state["task_seconds"])
-        if self.test_mode == "val":
-            self.train_dataset.open(self.current_task)
+        self.train_dataset.close()  # the next batch opens the checkpoint's task

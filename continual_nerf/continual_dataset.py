@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from pathlib import Path
+from typing import Iterable, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
 import torch
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
-from PIL import UnidentifiedImageError
+from PIL import Image, UnidentifiedImageError
 
-from continual_nerf.errors import DatasetError
+from continual_nerf.errors import DatasetError, first_line
+
+
+IMAGE_MODES = ("L", "RGB", "RGBA")
+"""PIL modes of the images nerfstudio's InputDataset decodes correctly."""
 
 
 class ClosedTaskError(PermissionError):
@@ -82,9 +88,37 @@ class TestFrameDataset(InputDataset):
 
 
 def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
-    """nerfstudio's image read, with a missing, unreadable or truncated file reported by name in one line."""
+    """nerfstudio's image read, with a missing, unreadable, truncated or mis-sized file reported by name in one line."""
     filename = dataset._dataparser_outputs.image_filenames[image_idx]
     try:
-        return InputDataset.get_numpy_image(dataset, image_idx)
+        image = InputDataset.get_numpy_image(dataset, image_idx)
     except (OSError, UnidentifiedImageError, ValueError, AssertionError) as error:
-        raise DatasetError(f"{filename}: cannot read image ({str(error).splitlines()[0]})") from None
+        raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
+    # the flat pixel numbering of a task assumes every image has its camera's size
+    check_size(filename, (image.shape[1], image.shape[0]), dataset.cameras, image_idx)
+    return image
+
+
+def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
+    """Check from the file headers alone, without decoding pixels, that each of `frames` is an 8-bit image of its
+    camera's size."""
+    for frame in frames:
+        filename = dataset._dataparser_outputs.image_filenames[frame]
+        try:
+            with Image.open(filename) as image:
+                size, mode = image.size, image.mode
+        except (OSError, UnidentifiedImageError) as error:
+            raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
+        # nerfstudio reads other modes wrongly (palette indices as grey) or not at all (16-bit, two channels)
+        if mode not in IMAGE_MODES:
+            raise DatasetError(f"{filename}: image mode {mode} is not supported (8-bit {', '.join(IMAGE_MODES)} only)")
+        check_size(filename, size, dataset._dataparser_outputs.cameras, frame)
+
+
+def check_size(filename: Path, size: Tuple[int, int], cameras: Cameras, frame: int) -> None:
+    expected = int(cameras.width[frame]), int(cameras.height[frame])
+    if tuple(size) != expected:
+        raise DatasetError(
+            f"{filename}: image is {size[0]}x{size[1]} pixels, its camera {expected[0]}x{expected[1]} "
+            "(every image of a camera must have the camera's size)"
+        )

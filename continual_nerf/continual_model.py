@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Dict, Iterator, Tuple, Type
@@ -13,7 +14,9 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import nn
 
+from continual_nerf.compilation import compile_model, stop_input_gradients
 from continual_nerf.distillation_loss import distillation_loss
+from continual_nerf.errors import ContinualConfigError
 
 
 @dataclass
@@ -41,6 +44,24 @@ class ContinualNGPModelConfig(NerfactoModelConfig):
     """Per-image appearance codes; off because images of future tasks have no code to learn yet."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Pose refinement; off because the paper trains on ground-truth poses."""
+    compile: bool = True
+    """Run the hash grids and MLPs through torch.compile (eager, after a one-line notice, where it cannot compile)."""
+    detach_sample_positions: bool = True
+    """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only."""
+    replay_sample_fraction: float = 0.5
+    """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with."""
+
+    def replay_oracle_config(self) -> ContinualNGPModelConfig:
+        """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""
+
+        def scaled(num_samples: int) -> int:
+            return max(1, round(num_samples * self.replay_sample_fraction))
+
+        return dataclasses.replace(
+            self,
+            num_proposal_samples_per_ray=tuple(scaled(n) for n in self.num_proposal_samples_per_ray),
+            num_nerf_samples_per_ray=scaled(self.num_nerf_samples_per_ray),
+        )
 
 
 class _LPIPSNotComputed(nn.Module):
@@ -66,9 +87,17 @@ class ContinualNGPModel(NerfactoModel):
     config: ContinualNGPModelConfig
 
     def populate_modules(self) -> None:
+        if not self.config.replay_sample_fraction > 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.replay-sample-fraction must be positive, got {self.config.replay_sample_fraction}"
+            )
         # nothing may download at run time, and this model reports PSNR and SSIM only
         with without_lpips():
             super().populate_modules()
+        if self.config.compile:
+            compile_model(self)
+        if self.config.detach_sample_positions and not self.config.predict_normals:
+            stop_input_gradients(self.field.mlp_base)  # outside the compiled forward, so its graph has no input gradient
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
@@ -83,3 +112,13 @@ class ContinualNGPModel(NerfactoModel):
         metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
         del metrics_dict["lpips"]
         return metrics_dict, images_dict
+
+    def get_extra_state(self) -> Dict[str, int]:
+        # the proposal sampler's counters decide whether its networks are updated at a step; a checkpoint keeps them
+        # so that a resumed run trains exactly as the uninterrupted one
+        sampler = self.proposal_sampler
+        return {"proposal_step": sampler._step, "proposal_steps_since_update": sampler._steps_since_update}
+
+    def set_extra_state(self, state: Dict[str, int]) -> None:
+        self.proposal_sampler._step = int(state["proposal_step"])
+        self.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])

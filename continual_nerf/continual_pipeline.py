@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, List, Literal, Mapping, Optional, Type
+from typing import Any, Dict, List, Literal, Mapping, Optional, Type
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
@@ -17,6 +17,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from continual_nerf.accuracy_matrix import AccuracyMatrix
 from continual_nerf.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.continual_model import ContinualNGPModelConfig
+from continual_nerf.continual_viewer import ContinualPanel
 from continual_nerf.evaluation import evaluate_frames
 
 ORACLE_PREFIX = "datamanager.replay_oracle.model."
@@ -51,6 +52,8 @@ class ContinualPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         self.accuracy = AccuracyMatrix(num_tasks=self.datamanager.num_tasks)
         self._step_started = 0.0
+        self.continual_panel = ContinualPanel(self)
+        """The viewer's continual-learning panel and per-task camera frustums."""
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         trainer = training_callback_attributes.trainer
@@ -61,7 +64,7 @@ class ContinualPipeline(VanillaPipeline):
                 [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._end_task_if_budget_spent, args=[trainer]
             ),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._print_summary),
-        ]
+        ] + self.continual_panel.training_callbacks(trainer)
 
     def _start_clock(self, step: int) -> None:
         self._step_started = time.perf_counter()
@@ -75,9 +78,13 @@ class ContinualPipeline(VanillaPipeline):
         if datamanager.is_last_task:
             trainer.stop_training = True
         else:
+            self.consolidate_task()
             datamanager.open_next_task(self.model)
             CONSOLE.print(f"[bold]Task {datamanager.current_task + 1}/{datamanager.num_tasks} released at step {step + 1}")
         trainer.save_checkpoint(step)
+
+    def consolidate_task(self) -> None:
+        """Runs at the end of every task but the last, while its pixels are still readable (EWC's Fisher)."""
 
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
@@ -87,9 +94,10 @@ class ContinualPipeline(VanillaPipeline):
         psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist())
         self.train()
         tasks = datamanager.test_task_of_frame()[frames]
-        seen = range(datamanager.current_task + 1)
+        seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
         row_psnr = [float(psnr[tasks == j].mean()) for j in seen]
         row_ssim = [float(ssim[tasks == j].mean()) for j in seen]
+        self.accuracy.num_tasks = datamanager.num_tasks  # grows while a capture folder is still being written
         self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step)
         path = self.accuracy.write(output_dir)
         writer.put_dict(
@@ -114,6 +122,13 @@ class ContinualPipeline(VanillaPipeline):
         if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.datamanager.replay_oracle.ready:
             self.datamanager.replay_oracle.update(self.model)  # builds the copy the saved weights go into
         return super().load_state_dict(state_dict, strict)
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        # in the checkpoint, so a resumed run's accuracy_matrix.json keeps the rows measured before the crash
+        return {"accuracy": asdict(self.accuracy)}
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        self.accuracy = AccuracyMatrix(**state["accuracy"])
 
 
 def _format_row(values: List[float]) -> str:

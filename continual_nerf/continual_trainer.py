@@ -1,13 +1,28 @@
-"""nerfstudio's Trainer, with the iteration count derived from the task budget and one-line errors for bad input."""
+"""nerfstudio's Trainer, with the iteration count derived from the task budget, one-line errors for bad input,
+atomic checkpoints and a resume (`--load-dir`) that continues a killed run where it stopped."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Type
+from pathlib import Path
+from typing import Any, Dict, Literal, Optional, Type
 
+import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.viewer.viewer import Viewer
 
-from continual_nerf.errors import ContinualNerfError
+from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME
+from continual_nerf.checkpoints import (
+    checkpoint_steps,
+    find_checkpoint,
+    read_checkpoint,
+    restore_rng_states,
+    rng_states,
+    save_checkpoint_file,
+)
+from continual_nerf.errors import CheckpointError, ContinualNerfError, first_line
 
 
 @dataclass
@@ -15,6 +30,29 @@ class ContinualTrainerConfig(TrainerConfig):
     """TrainerConfig whose max_num_iterations follows from num_tasks x the per-task budget."""
 
     _target: Type = field(default_factory=lambda: ContinualTrainer)
+    deterministic: bool = False
+    """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
+
+    def resume_source(self) -> Optional[Path]:
+        """The run folder this run resumes from, if any."""
+        if self.load_dir is not None:
+            return self.load_dir.parent
+        return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
+
+    def save_config(self) -> None:
+        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten."""
+        base_dir = self.get_base_dir()
+        source = self.resume_source()
+        continuing_in_place = source is not None and source.resolve() == base_dir.resolve()
+        holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
+            self.get_checkpoint_dir().is_dir() and checkpoint_steps(self.get_checkpoint_dir())
+        )
+        if holds_a_run and not continuing_in_place:
+            raise SystemExit(
+                f"{self.method_name}: error: {base_dir} already holds a run; choose another --timestamp or "
+                f"--experiment-name, or continue that run with --load-dir {self.get_checkpoint_dir()}"
+            )
+        super().save_config()
 
 
 class ContinualTrainer(Trainer):
@@ -24,13 +62,87 @@ class ContinualTrainer(Trainer):
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         self.config.max_num_iterations = self.config.pipeline.datamanager.max_num_iterations()
+        if self.config.deterministic:
+            # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
+            torch.use_deterministic_algorithms(True, warn_only=True)
         try:
             super().setup(test_mode)
         except ContinualNerfError as error:
             raise SystemExit(f"{self.config.method_name}: error: {error}") from None
 
     def train(self) -> None:
+        accuracy = self.pipeline.accuracy
+        accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
         try:
             super().train()
-        except ContinualNerfError as error:  # for instance an image of a task released mid-run cannot be read
-            raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+        except Exception as error:
+            if not accuracy.finished:
+                accuracy.status = "failed"
+                accuracy.write(self.base_dir)
+            if isinstance(error, ContinualNerfError):  # for instance an image of a task released mid-run
+                raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+            raise
+
+    def _load_checkpoint(self) -> None:
+        """Resume from --load-dir (latest or --load-step) or --load-checkpoint: nerfstudio's states plus the RNGs."""
+        if self.config.load_dir is not None:
+            path = find_checkpoint(self.config.load_dir, self.config.load_step)
+        elif self.config.load_checkpoint is not None:
+            path = self.config.load_checkpoint
+        else:
+            return super()._load_checkpoint()
+        state = read_checkpoint(path)
+        self._load_states(state, path)
+        accuracy, datamanager = self.pipeline.accuracy, self.pipeline.datamanager
+        if accuracy.finished:
+            raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
+        restore_rng_states(state["rng"])
+        self._start_step = state["step"] + 1
+        # nerfstudio runs max_num_iterations more steps: end where the uninterrupted run ends
+        self.config.max_num_iterations -= self._start_step
+        CONSOLE.print(
+            f"Resuming from {path} at step {self._start_step}: task {datamanager.current_task + 1}/"
+            f"{datamanager.num_tasks}, {datamanager.task_iterations} iterations into it"
+        )
+
+    def _load_states(self, state: Dict[str, Any], path: Path) -> None:
+        """Load pipeline (model, oracle, task progress, accuracy matrix), optimizers, schedulers and grad scaler."""
+        try:
+            self.pipeline.load_pipeline(state["pipeline"], state["step"])
+            self.optimizers.load_optimizers(state["optimizers"])
+            if self.config.load_scheduler:
+                self.optimizers.load_schedulers(state.get("schedulers", {}))
+            self.grad_scaler.load_state_dict(state["scalers"])
+        except ContinualNerfError as error:
+            raise CheckpointError(f"{path}: {error}") from None
+        except (RuntimeError, KeyError, ValueError) as error:
+            raise CheckpointError(
+                f"{path}: does not fit this run ({first_line(error)}); resume with the options it was trained with"
+            ) from None
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete."""
+        path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        save_checkpoint_file(self.checkpoint_state(step), path)
+        if self.config.save_only_latest_checkpoint:
+            for older in checkpoint_steps(self.checkpoint_dir).values():
+                if older != path:
+                    older.unlink()
+
+    def checkpoint_state(self, step: int) -> Dict[str, Any]:
+        return {
+            "step": step,
+            "pipeline": self.pipeline.state_dict(),
+            "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
+            "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+            "rng": rng_states(),
+        }
+
+    def _init_viewer_state(self) -> None:
+        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown
+        if isinstance(self.viewer_state, Viewer):
+            self.pipeline.continual_panel.attach(self.viewer_state, self)
+        else:
+            super()._init_viewer_state()

@@ -11,3 +11,16 @@ class ContinualConfigError(ContinualNerfError):
 
 class DatasetError(ContinualNerfError):
     """A dataset file or folder that cannot be read."""
+
+
+class CheckpointError(ContinualNerfError):
+    """A checkpoint that cannot be found, read or resumed from."""
+
+
+def first_line(error: BaseException) -> str:
+    """The first line of an error's message, its first detail when that line only introduces a list (ends with ':'),
+    or the error's type when the message is empty (a bare assert)."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    if len(lines) > 1 and lines[0].endswith(":"):
+        return lines[1]
+    return lines[0] if lines else type(error).__name__

@@ -9,6 +9,8 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from torch import nn
 
+from continual_nerf.continual_model import ContinualNGPModelConfig
+
 
 class ReplayOracle(nn.Module):
     """Renders pseudo ground truth for rays of past tasks from a frozen copy of the model.
@@ -29,7 +31,10 @@ class ReplayOracle(nn.Module):
         """Freeze a copy of `model` as the oracle, replacing the previous one."""
         if self.model is None:
             # a built nerfstudio model cannot be deep-copied; a second one from the same config can load its state
-            self.model = model.config.setup(scene_box=model.scene_box, num_train_data=model.num_train_data, **model.kwargs)
+            config = model.config
+            if isinstance(config, ContinualNGPModelConfig):  # same weights, rendered with fewer samples per ray
+                config = config.replay_oracle_config()
+            self.model = config.setup(scene_box=model.scene_box, num_train_data=model.num_train_data, **model.kwargs)
             self.model.to(model.device)
         self.model.load_state_dict(model.state_dict())
         self.model.eval()

@@ -5,6 +5,7 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 
@@ -32,4 +33,9 @@ continual_tum = DataParserSpecification(
 continual_waymo = DataParserSpecification(
     config=WaymoDataParserConfig(),
     description="A Waymo Open Dataset segment (v2 Parquet root or v1 .tfrecord), chosen cameras split by time.",
+)
+
+continual_stream = DataParserSpecification(
+    config=StreamDataParserConfig(),
+    description="A capture folder another process is still writing, one frame JSON at a time (continual-ngp-stream).",
 )

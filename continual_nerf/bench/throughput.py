@@ -2,29 +2,74 @@
 
     python -m continual_nerf.bench.throughput [--device cpu] [--steps 20] [--rays-per-batch 1024]
 
-All figures come from one process on one device, timing nerfstudio's own Trainer.train_iteration.
+Every configuration is set up in one process on one device and timed with nerfstudio's own
+Trainer.train_iteration, in turns (one step of each, again and again), so that a change in the machine's
+load hits all of them alike. Ratios are medians over the turns of the ratio within a turn.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, Literal
+from typing import Dict, List, Literal
 
 import torch
 import tyro
-from nerfstudio.models.nerfacto import NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.continual_model import without_lpips
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up, without_replay
 from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import continual_ngp
+
+REPLAY, NERFACTO = "continual-ngp", "nerfacto"
+
+
+@dataclass
+class Throughput:
+    """Step times of every configuration, measured in the same turns."""
+
+    rays_per_batch: int
+    """Rays per training batch of every configuration."""
+    first_step: Dict[str, float] = field(default_factory=dict)
+    """Seconds of each configuration's first step, one-off costs (compilation) included."""
+    steps: Dict[str, List[float]] = field(default_factory=dict)
+    """Seconds of each timed step, turn by turn."""
+    replay_off: str = ""
+    """Which of the configurations is continual-ngp without replay."""
+
+    def median(self, name: str) -> float:
+        return statistics.median(self.steps[name])
+
+    def ratio(self, numerator: str, denominator: str) -> float:
+        """Median over the turns of numerator's step time / denominator's."""
+        return statistics.median(a / b for a, b in zip(self.steps[numerator], self.steps[denominator]))
+
+    @property
+    def replay_overhead(self) -> float:
+        return self.ratio(REPLAY, self.replay_off)
+
+    def report(self, device: str, num_tasks: int) -> None:
+        table = Table(title=f"Training throughput on {device}, {self.rays_per_batch} rays per batch")
+        for column in ("configuration", "first step (s)", "median step (ms)", "rays/s", "speed vs nerfacto"):
+            table.add_column(column, justify="right")
+        for name in self.steps:
+            table.add_row(
+                name,
+                f"{self.first_step[name]:.1f}",
+                f"{self.median(name) * 1e3:.0f}",
+                f"{self.rays_per_batch / self.median(name):,.0f}",
+                f"{self.ratio(NERFACTO, name):.2f}x",
+            )
+        CONSOLE.print(table)
+        CONSOLE.print(
+            f"Replay overhead in task {num_tasks} of {num_tasks} ({100 * (num_tasks - 1) // num_tasks}% of rays replayed): "
+            f"{self.replay_overhead:.2f}x the step without replay"
+        )
 
 
 @dataclass
@@ -40,69 +85,54 @@ class ThroughputBenchmark:
     rays_per_batch: int = 1024
     """Rays per training batch for every configuration (the paper's 1024)."""
     num_tasks: int = 10
-    """Tasks of the demo trajectory; continual-ngp is timed in the last task, where 90% of rays are replayed."""
+    """Tasks of the demo trajectory; continual methods are timed in the last task, where 90% of rays are replayed."""
     data: Path = Path("data/continual-demo")
     """Where the demo scene is generated (and reused from)."""
 
-    def trainer_config(self, replay: bool, output_dir: Path) -> ContinualTrainerConfig:
-        config = dataclasses.replace(continual_ngp.config, vis="tensorboard", output_dir=output_dir)
-        config.machine.device_type = self.device
-        config.pipeline = dataclasses.replace(config.pipeline)
-        config.pipeline.datamanager = dataclasses.replace(
-            config.pipeline.datamanager,
-            dataparser=ContinualDemoDataParserConfig(data=self.data),
-            num_tasks=self.num_tasks,
-            train_num_rays_per_batch=self.rays_per_batch,
-            replay=replay,
-        )
-        config.set_timestamp()
-        return config
+    def configs(self, output_dir: Path) -> Dict[str, ContinualTrainerConfig]:
+        """continual-ngp with and without replay (continual-ngp-incre where registered), and nerfacto."""
+        demo = ContinualDemoDataParserConfig(data=self.data)
+        options = {"num_tasks": self.num_tasks, "train_num_rays_per_batch": self.rays_per_batch}
+        replay_off, replay_off_config = without_replay(demo, self.device, output_dir, **options)
+        return {
+            REPLAY: on_demo(continual_ngp.config, demo, self.device, output_dir, **options),
+            replay_off: replay_off_config,
+            NERFACTO: nerfacto_on_demo(demo, self.device, output_dir, **options),
+        }
 
-    def median_step_seconds(self, trainer: ContinualTrainer) -> float:
-        for step in range(self.warmup_steps):
-            trainer.train_iteration(step)
-        seconds = []
-        for step in range(self.warmup_steps, self.warmup_steps + self.steps):
-            start = time.perf_counter()
-            trainer.train_iteration(step)
-            if self.device == "cuda":
-                torch.cuda.synchronize()
-            seconds.append(time.perf_counter() - start)
-        return statistics.median(seconds)
-
-    def time_config(self, config: ContinualTrainerConfig, in_last_task: bool) -> float:
-        trainer = config.setup(local_rank=0, world_size=1)
-        with without_lpips():  # nerfacto builds LPIPS at set-up, which would download weights
-            trainer.setup()
+    def last_task_trainer(self, config: ContinualTrainerConfig) -> ContinualTrainer:
+        trainer = set_up(config)
         datamanager = trainer.pipeline.datamanager
-        while in_last_task and not datamanager.is_last_task:
+        while not datamanager.is_last_task:
             datamanager.open_next_task(trainer.pipeline.model)
-        return self.median_step_seconds(trainer)
+        return trainer
+
+    def step_seconds(self, trainer: ContinualTrainer, step: int) -> float:
+        start = time.perf_counter()
+        trainer.train_iteration(step)
+        if self.device == "cuda":
+            torch.cuda.synchronize()
+        return time.perf_counter() - start
+
+    def measure(self, output_dir: Path) -> Throughput:
+        """Step times of every configuration; their run folders go to `output_dir`, which must outlive the process's
+        tensorboard writers (nerfstudio keeps them globally)."""
+        configs = self.configs(output_dir)
+        result = Throughput(self.rays_per_batch, replay_off=list(configs)[1])
+        trainers = {name: self.last_task_trainer(config) for name, config in configs.items()}
+        for name, trainer in trainers.items():
+            result.first_step[name] = self.step_seconds(trainer, 0)
+            for step in range(1, self.warmup_steps):
+                trainer.train_iteration(step)
+            result.steps[name] = []
+        for step in range(self.warmup_steps, self.warmup_steps + self.steps):
+            for name, trainer in trainers.items():
+                result.steps[name].append(self.step_seconds(trainer, step))
+        return result
 
     def main(self) -> None:
         with tempfile.TemporaryDirectory() as scratch:
-            output_dir = Path(scratch)
-            nerfacto = self.trainer_config(replay=False, output_dir=output_dir)
-            nerfacto.pipeline.model = NerfactoModelConfig(eval_num_rays_per_chunk=1 << 13)
-            nerfacto.pipeline.datamanager.num_tasks = 1
-            runs: Dict[str, Callable[[], float]] = {
-                "continual-ngp (replay)": lambda: self.time_config(self.trainer_config(True, output_dir), True),
-                "continual-ngp (replay off)": lambda: self.time_config(self.trainer_config(False, output_dir), True),
-                "nerfacto": lambda: self.time_config(nerfacto, False),
-            }
-            seconds = {name: run() for name, run in runs.items()}
-        self.report(seconds)
-
-    def report(self, seconds: Dict[str, float]) -> None:
-        table = Table(title=f"Training throughput on {self.device}, {self.rays_per_batch} rays per batch")
-        for column in ("configuration", "median step (ms)", "rays/s", "vs nerfacto"):
-            table.add_column(column, justify="right")
-        for name, value in seconds.items():
-            ratio = seconds["nerfacto"] / value
-            table.add_row(name, f"{value * 1e3:.0f}", f"{self.rays_per_batch / value:,.0f}", f"{ratio:.2f}x")
-        CONSOLE.print(table)
-        overhead = seconds["continual-ngp (replay)"] / seconds["continual-ngp (replay off)"]
-        CONSOLE.print(f"Replay overhead in task {self.num_tasks} of {self.num_tasks}: {overhead:.2f}x the step without replay")
+            self.measure(Path(scratch)).report(self.device, self.num_tasks)
 
 
 def entrypoint() -> None:

@@ -1,0 +1,108 @@
+"""Crash-safe checkpoint and results files: atomic writes, safe loading, and the random number generators' states.
+
+A file is written under a temporary name and renamed into place, so a kill during a save leaves the
+previous file (or none), never a truncated one. Checkpoints keep nerfstudio's names and keys, so
+`ns-eval`, `ns-render` and `--load-dir` read them as usual; they also hold the RNG states, so a resumed
+run draws the same rays as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import random
+import re
+import zipfile
+from pathlib import Path
+from typing import Any, BinaryIO, Callable, Dict, Optional
+
+import numpy as np
+import torch
+
+from continual_nerf.errors import CheckpointError, first_line
+
+CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
+"""nerfstudio's checkpoint file name; the number is the training step."""
+
+CHECKPOINT_KEYS = ("step", "pipeline", "optimizers", "scalers")
+"""Keys nerfstudio's Trainer needs to resume from a checkpoint."""
+
+
+def write_atomically(path: Path, write: Callable[[BinaryIO], None], temporary_dir: Optional[Path] = None) -> None:
+    """Call `write` on a temporary file in `temporary_dir` (default: beside `path`), then rename it to `path`."""
+    folder = path.parent if temporary_dir is None else temporary_dir
+    folder.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = folder / f".{path.name}.partial-{os.getpid()}"
+    try:
+        with temporary.open("wb") as file:
+            write(file)
+            file.flush()
+            os.fsync(file.fileno())  # the rename must not reach the disk before the data does
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    write_atomically(path, lambda file: file.write(text.encode("utf8")))
+
+
+def save_checkpoint_file(state: Dict[str, Any], path: Path) -> None:
+    """torch.save `state` to `path` atomically; the temporary file lives in the run folder, not beside the
+    checkpoints, because nerfstudio's loaders parse the name of every file in the checkpoint folder."""
+    write_atomically(path, lambda file: torch.save(state, file), temporary_dir=path.parent.parent)
+
+
+def checkpoint_steps(folder: Path) -> Dict[int, Path]:
+    """Checkpoints in `folder` by step; other files are ignored."""
+    found = (CHECKPOINT_NAME.fullmatch(path.name) for path in folder.iterdir())
+    return {int(match.group(1)): folder / match.group(0) for match in found if match}
+
+
+def find_checkpoint(load_dir: Path, load_step: Optional[int]) -> Path:
+    """The checkpoint of `load_step` in `load_dir`, or its latest one; a one-line error when there is none."""
+    if not load_dir.is_dir():
+        raise CheckpointError(f"--load-dir {load_dir}: no such folder")
+    steps = checkpoint_steps(load_dir)
+    if not steps:
+        raise CheckpointError(f"--load-dir {load_dir}: holds no step-*.ckpt checkpoint")
+    if load_step is None:
+        return steps[max(steps)]
+    if load_step not in steps:
+        raise CheckpointError(f"--load-step {load_step}: {load_dir} has checkpoints of steps {sorted(steps)}")
+    return steps[load_step]
+
+
+def read_checkpoint(path: Path) -> Dict[str, Any]:
+    """A checkpoint's content, unpickled with weights_only=True (tensors and plain containers only)."""
+    if path.is_file() and not zipfile.is_zipfile(path):  # torch.save writes a zip archive; a cut one has no index
+        raise CheckpointError(f"{path}: not a readable checkpoint (not a complete torch.save archive: truncated?)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        raise CheckpointError(f"{path}: not a readable checkpoint ({first_line(error)})") from None
+    missing = [key for key in CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
+    if missing:
+        raise CheckpointError(f"{path}: not a nerfstudio checkpoint (no {', '.join(missing)})")
+    return state
+
+
+def rng_states() -> Dict[str, Any]:
+    """The states of every random number generator training draws from, in weights_only-loadable types."""
+    _, keys, position, has_gauss, cached_gaussian = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": [torch.from_numpy(keys.astype(np.int64)), position, has_gauss, cached_gaussian],
+        "python": random.getstate(),
+    }
+
+
+def restore_rng_states(states: Dict[str, Any]) -> None:
+    torch.set_rng_state(states["torch"])
+    if states["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+    keys, position, has_gauss, cached_gaussian = states["numpy"]
+    np.random.set_state(("MT19937", keys.numpy().astype(np.uint32), position, has_gauss, cached_gaussian))
+    random.setstate(states["python"])

@@ -1,0 +1,88 @@
+"""torch.compile for the hash grids and MLPs of a nerfacto-family model, with an eager fallback.
+
+Compiled code is attached to a module's `forward` only: the modules, their parameters and their
+state-dict keys stay nerfstudio's (no `_orig_mod.` prefix), so checkpoints, ns-eval, ns-render and the
+replay oracle's copy see the same model whether or not it was compiled.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+from typing import Any, Callable, List
+
+import torch
+from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.utils.external import TCNN_EXISTS
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import nn
+
+from continual_nerf.errors import first_line
+
+
+class CompiledForward:
+    """A module's forward run through torch.compile, or eager once compiling has failed anywhere.
+
+    torch.compile compiles at the first call, so that is where a missing C++ compiler or Triton, or an
+    unsupported Python, shows: the first failure prints one line and every compiled forward runs eager
+    from then on.
+    """
+
+    failed = False
+    """Set for every instance by the first failure: one notice, and no half-compiled model."""
+
+    def __init__(self, eager: Callable[..., Any], name: str) -> None:
+        self.eager = eager
+        self.name = name
+        self.compiled: Callable[..., Any] = eager
+        try:
+            # dynamic: replayed rays and evaluation chunks change the batch size from call to call
+            self.compiled = torch.compile(eager, dynamic=True)
+        except Exception as error:  # noqa: BLE001 - whatever stops compilation, eager still runs
+            self._fail(error)
+
+    def _fail(self, error: Exception) -> None:
+        if not CompiledForward.failed:
+            CONSOLE.print(f"[yellow]torch.compile unavailable ({self.name}: {first_line(error)}); running the model eager")
+        CompiledForward.failed = True
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        # the viewer renders from its own thread; compiling there could race the training thread's compilation
+        if CompiledForward.failed or threading.current_thread() is not threading.main_thread():
+            return self.eager(*args, **kwargs)
+        try:
+            return self.compiled(*args, **kwargs)
+        except Exception as error:  # noqa: BLE001 - an error of the model itself raises again from eager
+            self._fail(error)
+            return self.eager(*args, **kwargs)
+
+
+def hot_modules(model: NerfactoModel) -> List[nn.Module]:
+    """The modules every sample passes through: hash grids with their MLPs, colour MLP, encodings, contraction."""
+    field = model.field
+    modules = [field.mlp_base, field.mlp_head, field.direction_encoding]
+    for network in model.proposal_networks:
+        modules += [network.mlp_base] if not network.use_linear else [network.encoding, network.linear]
+    if field.spatial_distortion is not None:  # one instance, shared with the proposal networks
+        modules.append(field.spatial_distortion)
+    return modules
+
+
+def compile_model(model: NerfactoModel) -> None:
+    """Run the hot modules of `model` through torch.compile (falling back to eager if it cannot compile)."""
+    if model.config.implementation == "tcnn" and TCNN_EXISTS:
+        CONSOLE.print("tiny-cuda-nn's fused kernels run the hash grids and MLPs: nothing to compile")
+        return
+    for module in hot_modules(model):
+        module.forward = CompiledForward(module.forward, type(module).__name__)
+
+
+def stop_input_gradients(module: nn.Module) -> None:
+    """Detach the input of `module`: autograd then skips the gradient with respect to it."""
+    forward = module.forward
+
+    @functools.wraps(forward)
+    def detached_forward(in_tensor: torch.Tensor) -> torch.Tensor:
+        return forward(in_tensor.detach())
+
+    module.forward = detached_forward

@@ -1,0 +1,113 @@
+"""Checkpoints and results files survive a kill during a save, load with weights_only=True, and resume exactly."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import BinaryIO
+
+import pytest
+import torch
+from conftest import demo_parser, tiny_config
+from nerfstudio.scripts.train import train_loop
+
+from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.checkpoints import write_atomically, write_text_atomically
+from continual_nerf.continual_trainer import ContinualTrainerConfig
+
+
+class Killed(BaseException):
+    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
+
+
+def three_tasks(run_dir: Path, timestamp: str) -> ContinualTrainerConfig:
+    config = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=4)
+    config.timestamp = timestamp
+    config.steps_per_save = 10**9  # checkpoints at the end of each task only: steps 3, 7, 11
+    config.save_config()
+    return config
+
+
+def run(config: ContinualTrainerConfig) -> AccuracyMatrix:
+    """ns-train's own training function (it seeds from config.machine.seed); returns the run's accuracy matrix."""
+    train_loop(local_rank=0, world_size=1, config=config)
+    return AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+
+
+def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
+    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        if len(calls) < save_number:
+            return real_save(obj, file, *args, **kwargs)
+        buffer = io.BytesIO()
+        real_save(obj, buffer)
+        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise Killed
+
+    monkeypatch.setattr(torch, "save", save)
+
+
+def test_a_kill_during_a_save_leaves_the_last_complete_checkpoint_and_the_run_resumes_exactly(
+    run_dir, monkeypatch, single_thread
+):
+    uninterrupted = run(three_tasks(run_dir, "uninterrupted"))
+
+    killed = three_tasks(run_dir, "killed")
+    with monkeypatch.context() as patch:
+        kill_in_the_middle_of_save(patch, save_number=2)  # the checkpoint at the end of task 2
+        with pytest.raises(Killed):
+            train_loop(local_rank=0, world_size=1, config=killed)
+    checkpoint_dir = killed.get_checkpoint_dir()
+    assert [path.name for path in checkpoint_dir.iterdir()] == ["step-000000003.ckpt"], "no partial file beside it"
+    state = torch.load(checkpoint_dir / "step-000000003.ckpt", map_location="cpu", weights_only=True)
+    assert state["step"] == 3 and state["pipeline"]["datamanager._extra_state"]["current_task"] == 1
+    after_kill = AccuracyMatrix.read(killed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+    assert (len(after_kill.psnr), after_kill.finished, after_kill.status) == (2, False, "training")
+
+    resumed = three_tasks(run_dir, "resumed")
+    resumed.load_dir = checkpoint_dir
+    matrix = run(resumed)
+    assert matrix.finished and matrix.status == "finished" and matrix.steps == uninterrupted.steps == [3, 7, 11]
+    assert matrix.psnr == uninterrupted.psnr and matrix.ssim == uninterrupted.ssim, (
+        "model, oracle, optimizers, task progress and RNGs all come back: the resumed run is the uninterrupted one"
+    )
+    assert sorted(path.name for path in resumed.get_checkpoint_dir().iterdir()) == [
+        "step-000000007.ckpt", "step-000000011.ckpt"
+    ]
+
+
+def test_a_kill_while_a_results_file_is_written_leaves_the_previous_file(tmp_path):
+    path = tmp_path / ACCURACY_MATRIX_FILENAME
+    write_text_atomically(path, '{"psnr": [[20.0]]}')
+
+    def half_then_killed(file: BinaryIO) -> None:
+        file.write(b'{"psnr": [[20.0], [19.')
+        raise Killed
+
+    with pytest.raises(Killed):
+        write_atomically(path, half_then_killed)
+    assert path.read_text() == '{"psnr": [[20.0]]}'
+    assert [p.name for p in tmp_path.iterdir()] == [ACCURACY_MATRIX_FILENAME]
+
+
+def test_temporary_checkpoint_files_live_outside_the_checkpoint_folder(run_dir, monkeypatch):
+    config = three_tasks(run_dir, "temporary")
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    renamed = []
+    replace = os.replace
+
+    def recording_replace(source, target) -> None:
+        renamed.append((Path(source), Path(target)))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", recording_replace)
+    trainer.save_checkpoint(0)
+    # a SIGKILL mid-save leaves the temporary file behind: ns-eval and --load-dir parse every name in the folder
+    assert renamed == [(config.get_base_dir() / f".step-000000000.ckpt.partial-{os.getpid()}",
+                        config.get_checkpoint_dir() / "step-000000000.ckpt")]
+    assert [path.name for path in config.get_checkpoint_dir().iterdir()] == ["step-000000000.ckpt"]
