@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 from nerfstudio.configs.base_config import ViewerConfig
-from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from continual_nerf.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.continual_model import ContinualNGPModelConfig
 from continual_nerf.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.ewc import ContinualNGPEWCModelConfig, EWCPipelineConfig
+from continual_nerf.nerf_model import ContinualNeRFModelConfig, ContinualNeRFPipelineConfig
 from continual_nerf.streaming_datamanager import StreamingDataManagerConfig
 
 
@@ -54,4 +57,63 @@ continual_ngp_stream = MethodSpecification(
     config=_streaming(continual_ngp.config),
     description="continual-ngp on a capture folder that is still being written (continual-stream): "
     "a task opens whenever its frames have arrived.",
+)
+
+
+def _variant(config: ContinualTrainerConfig, method_name: str, **datamanager: object) -> ContinualTrainerConfig:
+    """`config` under another name with some datamanager options changed: a baseline is a configuration."""
+    config = copy.deepcopy(config)
+    config.method_name = method_name
+    config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **datamanager)
+    return config
+
+
+def _ewc(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+    """`config` without replay, its model and pipeline adding the EWC penalty and estimating the Fisher information."""
+    config = _variant(config, "continual-ngp-ewc", replay=False)
+    model = ContinualNGPEWCModelConfig(eval_num_rays_per_chunk=config.pipeline.model.eval_num_rays_per_chunk)
+    config.pipeline = EWCPipelineConfig(datamanager=config.pipeline.datamanager, model=model)
+    return config
+
+
+def _nerf(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+    """`config` with nerfstudio's vanilla NeRF model and its optimizer (RAdam, lr 5e-4, full precision)."""
+    config = _variant(config, "continual-nerf-meil")
+    model = ContinualNeRFModelConfig(eval_num_rays_per_chunk=config.pipeline.model.eval_num_rays_per_chunk)
+    config.pipeline = ContinualNeRFPipelineConfig(datamanager=config.pipeline.datamanager, model=model)
+    # constant learning rate, as for continual-ngp
+    config.optimizers = {"fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-8), "scheduler": None}}
+    config.mixed_precision = False
+    return config
+
+
+continual_ngp_incre = MethodSpecification(
+    config=_variant(continual_ngp.config, "continual-ngp-incre", replay=False),
+    description="iNGP-Incre (paper baseline): continual-ngp's hash grid trained task by task without replay.",
+)
+
+continual_ngp_ewc = MethodSpecification(
+    config=_ewc(continual_ngp.config),
+    description="iNGP + EWC (paper baseline): the hash grid without replay, held near each task's parameters "
+    "by Elastic Weight Consolidation.",
+)
+
+continual_ngp_joint = MethodSpecification(
+    config=_variant(continual_ngp.config, "continual-ngp-joint", replay=False, joint=True),
+    description="iNGP* (upper bound): the hash grid trained on every task's images at once, same total budget.",
+)
+
+continual_nerf_meil = MethodSpecification(
+    config=_nerf(continual_ngp.config),
+    description="MEIL-NeRF as the paper ran it: vanilla NeRF with replay by distillation from stored poses (Eq. 4).",
+)
+
+continual_nerf_incre = MethodSpecification(
+    config=_variant(continual_nerf_meil.config, "continual-nerf-incre", replay=False),
+    description="NeRF-Incre (paper baseline): vanilla NeRF (frequency encoding + MLP) trained task by task.",
+)
+
+continual_nerf_joint = MethodSpecification(
+    config=_variant(continual_nerf_meil.config, "continual-nerf-joint", replay=False, joint=True),
+    description="NeRF* (upper bound): vanilla NeRF trained on every task's images at once, same total budget.",
 )

@@ -5,10 +5,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 from pathlib import Path
-from typing import Any, Literal, Tuple
+from typing import Any, Literal
 
 from nerfstudio.configs.method_configs import method_configs as nerfstudio_methods
-from nerfstudio.plugins.registry import discover_methods
 
 from continual_nerf.continual_model import without_lpips
 from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
@@ -46,21 +45,6 @@ def nerfacto_on_demo(
     config.pipeline.model = copy.deepcopy(nerfacto.pipeline.model)
     config.optimizers = copy.deepcopy(nerfacto.optimizers)
     return config
-
-
-def without_replay(
-    demo: ContinualDemoDataParserConfig, device: Device, output_dir: Path, **datamanager: Any
-) -> Tuple[str, ContinualTrainerConfig]:
-    """Name and config of continual-ngp without replay: the registered continual-ngp-incre, which `ns-train` offers,
-    or continual-ngp with --pipeline.datamanager.replay False where it is not registered."""
-    registered, _ = discover_methods()
-    if "continual-ngp-incre" in registered:
-        return "continual-ngp-incre", on_demo(
-            registered["continual-ngp-incre"], demo, device, output_dir, **datamanager
-        )
-    return "continual-ngp, replay off", on_demo(
-        continual_ngp.config, demo, device, output_dir, replay=False, **datamanager
-    )
 
 
 def set_up(config: ContinualTrainerConfig) -> ContinualTrainer:

@@ -2,7 +2,7 @@
 
     python -m continual_nerf.bench.performance [--device cpu] [--output-dir outputs/bench]
 
-1. training throughput of continual-ngp (with and without replay), continual-ngp-incre if registered and
+1. training throughput of continual-ngp with and without replay (continual-ngp-incre) and
    nerfstudio's nerfacto at the same batch size, timed in turns in this process (continual_nerf.bench.throughput);
 2. peak resident memory after 2 and after 20 tasks of the same length, in a fresh process
    (continual_nerf.bench.memory);
@@ -33,13 +33,13 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up, without_replay
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up
 from continual_nerf.bench.memory import MIB, TaskMemory
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.evaluation import evaluate_frames
-from continual_nerf.method_configs import continual_ngp
+from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
 
 matplotlib.use("Agg")  # the PNG only; no display needed
 import matplotlib.pyplot as plt
@@ -184,7 +184,7 @@ class PerformanceBenchmark:
         configs = {"continual-ngp": on_demo(continual_ngp.config, demo, self.device, output_dir, **options)}
         if self.lever_reference:
             configs[LEVERS_OFF] = without_speed_levers(configs["continual-ngp"])
-        replay_off, configs[replay_off] = without_replay(demo, self.device, output_dir, **options)
+        configs["continual-ngp-incre"] = on_demo(continual_ngp_incre.config, demo, self.device, output_dir, **options)
         configs["nerfacto (all images at once)"] = nerfacto_on_demo(demo, self.device, output_dir, **options)
         return configs
 

@@ -21,12 +21,12 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up, without_replay
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up
 from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import continual_ngp
+from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
 
-REPLAY, NERFACTO = "continual-ngp", "nerfacto"
+REPLAY, REPLAY_OFF, NERFACTO = "continual-ngp", "continual-ngp-incre", "nerfacto"
 
 
 @dataclass
@@ -39,8 +39,6 @@ class Throughput:
     """Seconds of each configuration's first step, one-off costs (compilation) included."""
     steps: Dict[str, List[float]] = field(default_factory=dict)
     """Seconds of each timed step, turn by turn."""
-    replay_off: str = ""
-    """Which of the configurations is continual-ngp without replay."""
 
     def median(self, name: str) -> float:
         return statistics.median(self.steps[name])
@@ -51,7 +49,7 @@ class Throughput:
 
     @property
     def replay_overhead(self) -> float:
-        return self.ratio(REPLAY, self.replay_off)
+        return self.ratio(REPLAY, REPLAY_OFF)
 
     def report(self, device: str, num_tasks: int) -> None:
         table = Table(title=f"Training throughput on {device}, {self.rays_per_batch} rays per batch")
@@ -90,13 +88,12 @@ class ThroughputBenchmark:
     """Where the demo scene is generated (and reused from)."""
 
     def configs(self, output_dir: Path) -> Dict[str, ContinualTrainerConfig]:
-        """continual-ngp with and without replay (continual-ngp-incre where registered), and nerfacto."""
+        """continual-ngp with and without replay (continual-ngp-incre), and nerfacto."""
         demo = ContinualDemoDataParserConfig(data=self.data)
         options = {"num_tasks": self.num_tasks, "train_num_rays_per_batch": self.rays_per_batch}
-        replay_off, replay_off_config = without_replay(demo, self.device, output_dir, **options)
         return {
             REPLAY: on_demo(continual_ngp.config, demo, self.device, output_dir, **options),
-            replay_off: replay_off_config,
+            REPLAY_OFF: on_demo(continual_ngp_incre.config, demo, self.device, output_dir, **options),
             NERFACTO: nerfacto_on_demo(demo, self.device, output_dir, **options),
         }
 
@@ -118,7 +115,7 @@ class ThroughputBenchmark:
         """Step times of every configuration; their run folders go to `output_dir`, which must outlive the process's
         tensorboard writers (nerfstudio keeps them globally)."""
         configs = self.configs(output_dir)
-        result = Throughput(self.rays_per_batch, replay_off=list(configs)[1])
+        result = Throughput(self.rays_per_batch)
         trainers = {name: self.last_task_trainer(config) for name, config in configs.items()}
         for name, trainer in trainers.items():
             result.first_step[name] = self.step_seconds(trainer, 0)
