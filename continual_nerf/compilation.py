@@ -12,6 +12,7 @@ import threading
 from typing import Any, Callable, List
 
 import torch
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils.external import TCNN_EXISTS
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -75,6 +76,49 @@ def compile_model(model: NerfactoModel) -> None:
         return
     for module in hot_modules(model):
         module.forward = CompiledForward(module.forward, type(module).__name__)
+
+
+def is_compiled(model: nn.Module) -> bool:
+    """Whether `model` is a nerfacto-family model whose hot modules run compiled code (compiling has not failed)."""
+    if not isinstance(model, NerfactoModel) or CompiledForward.failed:
+        return False
+    return isinstance(model.field.mlp_head.forward, CompiledForward)
+
+
+def random_rays(model: NerfactoModel, num_rays: int) -> RayBundle:
+    """Rays from the scene box's centre in random directions, on the model's device."""
+    directions = torch.nn.functional.normalize(torch.randn(num_rays, 3, device=model.device), dim=-1)
+    return RayBundle(
+        origins=model.scene_box.get_center().to(model.device).expand(num_rays, 3),
+        directions=directions,
+        pixel_area=torch.full((num_rays, 1), 1e-6, device=model.device),
+        camera_indices=torch.zeros(num_rays, 1, dtype=torch.long, device=model.device),
+    )
+
+
+def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> None:
+    """Compile now rather than in the first training steps, so that a timed task (--seconds-per-task) counts training.
+
+    Renders `num_rays` rays (the training batch: compiled code is specialised on size ranges) with gradients (a
+    training step) and without (proposal rounds that skip their update, evaluation, the replay oracle); the parameters, their gradients, the proposal sampler's counters and the random generators
+    are left as they were.
+    """
+    if not is_compiled(model):
+        return
+    CONSOLE.print("Compiling the hash grids and MLPs (torch.compile)...")
+    sampler, was_training = model.proposal_sampler, model.training
+    counters = sampler._step, sampler._steps_since_update
+    devices = [model.device] if model.device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        if with_gradients:
+            model.train()
+            model(random_rays(model, num_rays))["rgb"].sum().backward()
+            model.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            model.eval()
+            model(random_rays(model, num_rays))
+    model.train(was_training)
+    sampler._step, sampler._steps_since_update = counters
 
 
 def stop_input_gradients(module: nn.Module) -> None:

@@ -115,7 +115,7 @@ class ContinualDataManager(VanillaDataManager):
         self.next_task_requested = False
         """Set by the viewer's "Next task now": the open task's budget counts as spent."""
         super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
-        self.replay_oracle = ReplayOracle()
+        self.replay_oracle = ReplayOracle(config.train_num_rays_per_batch)
 
     @property
     def num_tasks(self) -> int:

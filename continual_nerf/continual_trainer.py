@@ -22,6 +22,7 @@ from continual_nerf.checkpoints import (
     rng_states,
     save_checkpoint_file,
 )
+from continual_nerf.compilation import warm_up
 from continual_nerf.errors import CheckpointError, ContinualNerfError, first_line
 
 
@@ -69,6 +70,7 @@ class ContinualTrainer(Trainer):
             super().setup(test_mode)
         except ContinualNerfError as error:
             raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+        warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
 
     def train(self) -> None:
         accuracy = self.pipeline.accuracy

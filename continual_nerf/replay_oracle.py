@@ -9,6 +9,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from torch import nn
 
+from continual_nerf.compilation import warm_up
 from continual_nerf.continual_model import ContinualNGPModelConfig
 
 
@@ -19,9 +20,11 @@ class ReplayOracle(nn.Module):
     overwrite its weights in place, so memory does not grow with the number of tasks.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, rays_per_batch: int = 1024) -> None:
         super().__init__()
         self.model: Optional[Model] = None
+        self.rays_per_batch = rays_per_batch
+        """Training batch size: the copy is compiled for batches of its order when it is built."""
 
     @property
     def ready(self) -> bool:
@@ -36,9 +39,10 @@ class ReplayOracle(nn.Module):
                 config = config.replay_oracle_config()
             self.model = config.setup(scene_box=model.scene_box, num_train_data=model.num_train_data, **model.kwargs)
             self.model.to(model.device)
+            self.model.requires_grad_(False)  # before compiling: compiled code is specialised on it
+            warm_up(self.model, self.rays_per_batch, with_gradients=False)
         self.model.load_state_dict(model.state_dict())
         self.model.eval()
-        self.model.requires_grad_(False)
 
     def train(self, mode: bool = True) -> "ReplayOracle":
         """The copy stays in eval mode whatever the pipeline does: its samplers must not jitter."""

@@ -18,7 +18,7 @@ from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
 from continual_nerf.bench.memory import train_recording_memory
-from continual_nerf.compilation import CompiledForward
+from continual_nerf.compilation import CompiledForward, warm_up
 from continual_nerf.continual_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.continual_pipeline import ContinualPipeline
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
@@ -151,3 +151,28 @@ def test_the_replay_oracle_renders_with_a_fraction_of_the_samples():
     assert model.proposal_sampler.num_nerf_samples_per_ray == 16, "the model itself keeps its samples"
     with pytest.raises(ContinualConfigError, match="replay-sample-fraction must be positive"):
         small_model(compile=False, replay_sample_fraction=0.0)
+
+
+def test_warm_up_compiles_at_set_up_and_leaves_the_model_as_it_was():
+    from torch._dynamo.utils import counters
+
+    model = small_model(compile=True)
+    sampler = model.proposal_sampler
+    before = {name: p.detach().clone() for name, p in model.named_parameters()}
+    counters_before, rng_before = (sampler._step, sampler._steps_since_update), torch.get_rng_state()
+    warm_up(model, num_rays=1024)
+    assert not CompiledForward.failed
+    assert all(torch.equal(before[name], p) for name, p in model.named_parameters()), "warm-up changed weights"
+    assert all(p.grad is None for p in model.parameters()), "warm-up left gradients for the optimizer"
+    assert (sampler._step, sampler._steps_since_update) == counters_before
+    assert torch.equal(torch.get_rng_state(), rng_before), "warm-up drew from the run's random numbers"
+    oracle = ReplayOracle(rays_per_batch=1024)
+    oracle.update(model)
+    compiled_frames = counters["frames"]["ok"]
+    model.train()
+    model(fixed_rays(1024))["rgb"].sum().backward()  # a training step of the paper's batch
+    model.eval()
+    with torch.no_grad():
+        model(fixed_rays(4096))  # an evaluation chunk
+    oracle.render(fixed_rays(900))  # a replay batch of another size
+    assert counters["frames"]["ok"] == compiled_frames, "something compiled after set-up, inside the timed steps"
