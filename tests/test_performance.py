@@ -176,3 +176,26 @@ def test_warm_up_compiles_at_set_up_and_leaves_the_model_as_it_was():
         model(fixed_rays(4096))  # an evaluation chunk
     oracle.render(fixed_rays(900))  # a replay batch of another size
     assert counters["frames"]["ok"] == compiled_frames, "something compiled after set-up, inside the timed steps"
+
+
+@pytest.mark.parametrize("where", ["at torch.compile", "at the first call"])
+def test_compilation_failure_falls_back_to_eager_with_one_line(monkeypatch, capsys, where):
+    monkeypatch.setattr(CompiledForward, "failed", False)  # the class-wide flag, restored after the test
+
+    def failing_compile(function, **options):
+        if where == "at torch.compile":
+            raise RuntimeError("Compiler: cc not found\nmore detail")
+
+        def first_call(*args, **kwargs):
+            raise RuntimeError("InductorError: cc not found\nmore detail")
+
+        return first_call
+
+    monkeypatch.setattr(torch, "compile", failing_compile)
+    expected = render(small_model(compile=False), training=False)
+    actual = render(small_model(compile=True), training=False)
+    assert CompiledForward.failed
+    notices = [line for line in capsys.readouterr().out.splitlines() if "torch.compile unavailable" in line]
+    assert len(notices) == 1 and "cc not found" in notices[0] and "running the model eager" in notices[0]
+    for name in expected:
+        torch.testing.assert_close(actual[name], expected[name], rtol=0, atol=0, msg=f"{name} differs")
