@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import List, Literal
 
-from continual_nerf.checkpoints import write_text_atomically
+from continual_nerf.atomic_files import write_text_atomically
 
 ACCURACY_MATRIX_FILENAME = "accuracy_matrix.json"
 

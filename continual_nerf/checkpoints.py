@@ -1,4 +1,4 @@
-"""Crash-safe checkpoint and results files: atomic writes, safe loading, and the random number generators' states.
+"""Crash-safe checkpoints: saved through atomic_files (renamed into place), loaded safely, with the RNG states.
 
 A file is written under a temporary name and renamed into place, so a kill during a save leaves the
 previous file (or none), never a truncated one. Checkpoints keep nerfstudio's names and keys, so
@@ -8,17 +8,17 @@ run draws the same rays as an uninterrupted one.
 
 from __future__ import annotations
 
-import os
 import pickle
 import random
 import re
 import zipfile
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Dict, Optional
+from typing import Any, Dict, Optional
 
 import numpy as np
 import torch
 
+from continual_nerf.atomic_files import write_atomically
 from continual_nerf.errors import CheckpointError, first_line
 
 CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
@@ -26,26 +26,6 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 
 CHECKPOINT_KEYS = ("step", "pipeline", "optimizers", "scalers")
 """Keys nerfstudio's Trainer needs to resume from a checkpoint."""
-
-
-def write_atomically(path: Path, write: Callable[[BinaryIO], None], temporary_dir: Optional[Path] = None) -> None:
-    """Call `write` on a temporary file in `temporary_dir` (default: beside `path`), then rename it to `path`."""
-    folder = path.parent if temporary_dir is None else temporary_dir
-    folder.mkdir(parents=True, exist_ok=True)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = folder / f".{path.name}.partial-{os.getpid()}"
-    try:
-        with temporary.open("wb") as file:
-            write(file)
-            file.flush()
-            os.fsync(file.fileno())  # the rename must not reach the disk before the data does
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-
-
-def write_text_atomically(path: Path, text: str) -> None:
-    write_atomically(path, lambda file: file.write(text.encode("utf8")))
 
 
 def save_checkpoint_file(state: Dict[str, Any], path: Path) -> None:

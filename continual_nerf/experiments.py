@@ -36,7 +36,7 @@ from rich.table import Table
 
 from continual_nerf import report
 from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.checkpoints import write_text_atomically
+from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError, ContinualNerfError, first_line

@@ -18,6 +18,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOu
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image, UnidentifiedImageError
 
+from continual_nerf.atomic_files import write_bytes_atomically
 from continual_nerf.dataparsers.capture import (
     OPENCV_TO_OPENGL,
     CaptureDataParserConfig,
@@ -250,10 +251,8 @@ def extract_colour_frames(path: Path, cache: Path, frames: List[SensFrame]) -> N
             for frame in missing:
                 target = cached_jpeg(cache, frame)
                 sens.seek(frame.color_offset)
-                # a killed extraction leaves at most a .partial file, never a short JPEG under the final name
-                partial = target.with_name(f"{target.name}.partial-{os.getpid()}")
-                partial.write_bytes(sens.read(frame.color_size))
-                os.replace(partial, target)
+                # a killed extraction leaves at most a partial file, never a short JPEG under the final name
+                write_bytes_atomically(target, sens.read(frame.color_size))
     except OSError as error:
         raise DatasetError(f"{cache}: cannot write the extracted colour frames ({error.strerror or error})") from None
 

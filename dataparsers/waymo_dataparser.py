@@ -9,7 +9,6 @@ nerfstudio loads them lazily like any image file.
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
@@ -19,6 +18,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 
+from continual_nerf.atomic_files import write_bytes_atomically
 from continual_nerf.dataparsers.capture import CaptureDataParserConfig, CaptureFrames, capture_outputs, check_pose
 from continual_nerf.dataparsers.tfrecord import Message, read_records
 from continual_nerf.errors import ContinualConfigError, DatasetError
@@ -155,13 +155,6 @@ def cache_folder(config: WaymoDataParserConfig, segment: str) -> Path:
 
 def image_filename(folder: Path, timestamp: int, camera: str) -> Path:
     return folder / f"{timestamp}_{camera}.jpg"
-
-
-def write_image(target: Path, jpeg: bytes) -> None:
-    """Write-then-rename: a file under its final name is always complete, so the cache can be reused."""
-    partial = target.with_name(f"{target.name}.partial-{os.getpid()}")
-    partial.write_bytes(jpeg)
-    os.replace(partial, target)
 
 
 def segment_of(
@@ -303,7 +296,7 @@ def cache_v2_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:
             ):
                 target = missing.get((timestamp, CAMERA_NAMES.get(number)))
                 if target is not None:
-                    write_image(target, jpeg)
+                    write_bytes_atomically(target, jpeg)  # the cache is reused: never a short file in it
     except pa.ArrowException as error:
         raise DatasetError(f"{path}: cannot read {IMAGE} ({str(error).splitlines()[0]})") from None
 
@@ -373,7 +366,7 @@ def cache_v1_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:
         for image in frame.messages(4):
             target = missing.get((timestamp, CAMERA_NAMES.get(image.integer(1))))
             if target is not None:
-                write_image(target, image.blob(2))
+                write_bytes_atomically(target, image.blob(2))
 
 
 def read_v1(config: WaymoDataParserConfig) -> WaymoSegment:

@@ -13,7 +13,7 @@ from conftest import demo_parser, tiny_config
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.checkpoints import write_atomically, write_text_atomically
+from continual_nerf.atomic_files import write_atomically, write_text_atomically
 from continual_nerf.continual_trainer import ContinualTrainerConfig
 
 
