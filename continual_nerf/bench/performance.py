@@ -16,7 +16,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import random
 import subprocess
 import sys
 import tempfile
@@ -26,10 +25,10 @@ from pathlib import Path
 from typing import Dict, List, Literal
 
 import matplotlib
-import numpy as np
 import torch
 import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.scripts.train import _set_random_seed
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
@@ -93,16 +92,9 @@ class TrainingClock:
         self.seconds += time.perf_counter() - self._started
 
 
-def seed_everything(seed: int) -> None:
-    """What ns-train does before training (nerfstudio's train script seeds these three)."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
 def train_with_psnr_curve(config: ContinualTrainerConfig, eval_every: int) -> PSNRCurve:
     """Train `config` with nerfstudio's loop, evaluating every test frame every `eval_every` steps and at the end."""
-    seed_everything(config.machine.seed)
+    _set_random_seed(config.machine.seed)  # as ns-train seeds a run
     trainer = set_up(config)
     clock, curve = TrainingClock(), PSNRCurve()
 
