@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import List, Literal, Optional, Type
+from typing import List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -101,24 +101,39 @@ def select_frames(frames: CaptureFrames, config: CaptureDataParserConfig) -> Cap
     return frames.select(keep)
 
 
+def fit_into_box(camera_to_worlds: np.ndarray, orientation_method: str, scene_scale: float) -> Tuple[np.ndarray, float]:
+    """A (3, 4) float64 transform and a scale that centre, orient and fit (N, 4, 4) `camera_to_worlds` into
+    +-scene_scale (a scale of scene_scale when every camera stands at one point)."""
+    # recentre in float64 first: nerfstudio's orientation runs in float32, and world coordinates can be kilometres
+    origin = camera_to_worlds[:, :3, 3].mean(axis=0)
+    recentred = camera_to_worlds.copy()
+    recentred[:, :3, 3] -= origin
+    # nerfstudio 1.1.5's "pca" flips whole poses instead of two axes; the transform it returns is right
+    _, rotation = camera_utils.auto_orient_and_center_poses(
+        torch.from_numpy(recentred).float(), method=orientation_method, center_method="none"  # type: ignore[arg-type]
+    )
+    translate = np.eye(4)
+    translate[:3, 3] = -origin
+    transform = rotation.double().numpy() @ translate
+    extent = float(np.abs((transform @ camera_to_worlds)[:, :3, 3]).max())
+    return transform, scene_scale / extent if extent > 1e-6 else scene_scale
+
+
+def fitted_poses(camera_to_worlds: np.ndarray, transform: np.ndarray, scale: float) -> torch.Tensor:
+    """(N, 3, 4) float32 camera-to-world matrices in the box: `transform` applied in float64, positions scaled."""
+    poses = transform @ camera_to_worlds
+    poses[:, :, 3] *= scale
+    return torch.from_numpy(poses).float()
+
+
 def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> DataparserOutputs:
     """Select, orient, centre and scale the frames into nerfstudio's box; DataparserOutputs in capture order."""
     config.check_options()
     frames = select_frames(frames, config)
-    # recentre in float64 first: nerfstudio's orientation runs in float32, and world coordinates can be kilometres
-    origin = frames.camera_to_worlds[:, :3, 3].mean(axis=0)
-    recentred = frames.camera_to_worlds.copy()
-    recentred[:, :3, 3] -= origin
-    poses = torch.from_numpy(recentred).float()
-    _, transform = camera_utils.auto_orient_and_center_poses(poses, method=config.orientation_method)
-    # nerfstudio 1.1.5's "pca" flips whole poses instead of two axes; the transform it returns is right
-    oriented = transform @ poses
-    transform[:, 3] -= transform[:, :3] @ torch.from_numpy(origin).float()
-    scale = config.scene_scale / max(float(oriented[:, :3, 3].abs().max()), 1e-6)
-    oriented[:, :3, 3] *= scale
+    transform, scale = fit_into_box(frames.camera_to_worlds, config.orientation_method, config.scene_scale)
     distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()
     cameras = Cameras(
-        camera_to_worlds=oriented[:, :3, :4].float(),
+        camera_to_worlds=fitted_poses(frames.camera_to_worlds, transform, scale),
         fx=torch.from_numpy(frames.fx).float()[:, None],
         fy=torch.from_numpy(frames.fy).float()[:, None],
         cx=torch.from_numpy(frames.cx).float()[:, None],
@@ -133,7 +148,7 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         image_filenames=frames.image_filenames,
         cameras=cameras,
         scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
-        dataparser_transform=transform.float(),
+        dataparser_transform=torch.from_numpy(transform).float(),
         dataparser_scale=scale,
         metadata=_metadata(frames, config),
     )

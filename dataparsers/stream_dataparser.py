@@ -26,14 +26,13 @@ from typing import Callable, Dict, List, Literal, Optional, Set, Tuple, Type, Un
 
 import numpy as np
 import torch
-from nerfstudio.cameras import camera_utils
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from continual_nerf.dataparsers.capture import CaptureDataParserConfig
+from continual_nerf.dataparsers.capture import CaptureDataParserConfig, fit_into_box, fitted_poses
 from continual_nerf.dataparsers.ordered_capture_dataparser import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
@@ -200,24 +199,6 @@ class CaptureWatcher:
         return ready
 
 
-def derive_transform(
-    camera_to_worlds: np.ndarray, orientation_method: str, scene_scale: float
-) -> Tuple[np.ndarray, float]:
-    """A 3x4 transform (float64) and a scale that centre, orient and fit `camera_to_worlds` into +-scene_scale."""
-    # recentre in float64 first: nerfstudio orients in float32, and world coordinates can be kilometres
-    origin = camera_to_worlds[:, :3, 3].mean(axis=0)
-    recentred = camera_to_worlds.copy()
-    recentred[:, :3, 3] -= origin
-    _, rotation = camera_utils.auto_orient_and_center_poses(
-        torch.from_numpy(recentred).float(), method=orientation_method, center_method="none"  # type: ignore[arg-type]
-    )
-    translate = np.eye(4)
-    translate[:3, 3] = -origin
-    transform = rotation.double().numpy() @ translate
-    extent = float(np.abs((transform @ camera_to_worlds)[:, :3, 3]).max())
-    return transform, scene_scale / extent if extent > 1e-6 else scene_scale
-
-
 def read_transform_file(path: Path) -> Tuple[np.ndarray, float]:
     """The `transform` and `scale` of a nerfstudio dataparser_transforms.json."""
     try:
@@ -318,22 +299,21 @@ class StreamDataParser(DataParser):
         elif self.config.normalization == "first-task":
             poses = np.stack([frame.camera_to_world for frame in first_task])
             method, scene_scale = self.config.orientation_method, self.config.scene_scale
-            self.transform, self.scale = derive_transform(poses, method, scene_scale)
+            self.transform, self.scale = fit_into_box(poses, method, scene_scale)
         else:
             self.transform, self.scale = np.eye(4)[:3], 1.0
 
     def outputs(self, frames: List[StreamFrame]) -> DataparserOutputs:
         """DataparserOutputs of `frames` (in this order) with the fixed transform."""
         assert self.transform is not None, "the transform is fixed when the first task is complete"
-        poses = self.transform @ np.stack([frame.camera_to_world for frame in frames])
-        poses[:, :, 3] *= self.scale
+        poses = fitted_poses(np.stack([frame.camera_to_world for frame in frames]), self.transform, self.scale)
         intrinsics = torch.from_numpy(np.stack([frame.intrinsics for frame in frames])).float()
         distortion = np.stack([frame.distortion for frame in frames])
         bound = self.config.scene_box_bound
         return DataparserOutputs(
             image_filenames=[frame.image for frame in frames],
             cameras=Cameras(
-                camera_to_worlds=torch.from_numpy(poses).float(),
+                camera_to_worlds=poses,
                 fx=intrinsics[:, 0:1],
                 fy=intrinsics[:, 1:2],
                 cx=intrinsics[:, 2:3],
