@@ -9,13 +9,13 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from continual_nerf.continual_datamanager import ContinualDataManagerConfig
-from continual_nerf.continual_model import ContinualNGPModelConfig
-from continual_nerf.continual_pipeline import ContinualPipelineConfig
-from continual_nerf.continual_trainer import ContinualTrainerConfig
-from continual_nerf.ewc import ContinualNGPEWCModelConfig, EWCPipelineConfig
-from continual_nerf.nerf_model import ContinualNeRFModelConfig, ContinualNeRFPipelineConfig
-from continual_nerf.streaming_datamanager import StreamingDataManagerConfig
+from continual_nerf.baselines.ewc import ContinualNGPEWCModelConfig, EWCPipelineConfig
+from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig, ContinualNeRFPipelineConfig
+from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
+from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
 
 def _adam() -> dict:

@@ -19,6 +19,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import nn
 
 from continual_nerf.errors import first_line
+from continual_nerf.nerfstudio_compat import hot_modules, proposal_sampler_state, replace_forward, set_proposal_sampler_state
 
 
 class CompiledForward:
@@ -58,24 +59,13 @@ class CompiledForward:
             return self.eager(*args, **kwargs)
 
 
-def hot_modules(model: NerfactoModel) -> List[nn.Module]:
-    """The modules every sample passes through: hash grids with their MLPs, colour MLP, encodings, contraction."""
-    field = model.field
-    modules = [field.mlp_base, field.mlp_head, field.direction_encoding]
-    for network in model.proposal_networks:
-        modules += [network.mlp_base] if not network.use_linear else [network.encoding, network.linear]
-    if field.spatial_distortion is not None:  # one instance, shared with the proposal networks
-        modules.append(field.spatial_distortion)
-    return modules
-
-
 def compile_model(model: NerfactoModel) -> None:
     """Run the hot modules of `model` through torch.compile (falling back to eager if it cannot compile)."""
     if model.config.implementation == "tcnn" and TCNN_EXISTS:
         CONSOLE.print("tiny-cuda-nn's fused kernels run the hash grids and MLPs: nothing to compile")
         return
     for module in hot_modules(model):
-        module.forward = CompiledForward(module.forward, type(module).__name__)
+        replace_forward(module, CompiledForward(module.forward, type(module).__name__))
 
 
 def is_compiled(model: nn.Module) -> bool:
@@ -106,8 +96,8 @@ def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> Non
     if not is_compiled(model):
         return
     CONSOLE.print("Compiling the hash grids and MLPs (torch.compile)...")
-    sampler, was_training = model.proposal_sampler, model.training
-    counters = sampler._step, sampler._steps_since_update
+    was_training = model.training
+    counters = proposal_sampler_state(model)
     devices = [model.device] if model.device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
         if with_gradients:
@@ -118,7 +108,7 @@ def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> Non
             model.eval()
             model(random_rays(model, num_rays))
     model.train(was_training)
-    sampler._step, sampler._steps_since_update = counters
+    set_proposal_sampler_state(model, counters)
 
 
 def stop_input_gradients(module: nn.Module) -> None:
@@ -129,4 +119,4 @@ def stop_input_gradients(module: nn.Module) -> None:
     def detached_forward(in_tensor: torch.Tensor) -> torch.Tensor:
         return forward(in_tensor.detach())
 
-    module.forward = detached_forward
+    replace_forward(module, detached_forward)

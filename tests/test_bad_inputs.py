@@ -27,8 +27,8 @@ from test_scannet_dataparser import write_sens
 from test_tum_dataparser import IMAGE_TIMES, write_sequence
 from test_waymo_dataparser import CAMERAS, corrupt, v1_frame, write_v1
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig

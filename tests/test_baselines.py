@@ -1,45 +1,28 @@
 """The paper's baselines as registered methods: each trains task by task, EWC's penalty and Fisher, joint training."""
 
-import copy
-import dataclasses
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import demo_parser, train
+from helpers import demo_parser, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.continual_trainer import ContinualTrainerConfig
-from continual_nerf.ewc import EWCPenalty, estimate_fisher
-from continual_nerf.experiments import PAPER_TABLE1, continual_methods
-from continual_nerf.nerf_model import ContinualNeRFModelConfig
-
-SMALL_NGP = dict(num_levels=8, log2_hashmap_size=14, max_res=128, num_nerf_samples_per_ray=16,
-                 num_proposal_samples_per_ray=(32,), eval_num_rays_per_chunk=4096)  # fmt: skip
-SMALL_NERF = dict(base_mlp_num_layers=3, base_mlp_layer_width=32, skip_connections=(1,), head_mlp_num_layers=1,
-                  head_mlp_layer_width=16, num_coarse_samples=16, num_importance_samples=16)  # fmt: skip
-
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.baselines.ewc import EWCPenalty, estimate_fisher
+from continual_nerf.experiments.plan import PAPER_TABLE1, continual_methods
+from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig
+from continual_nerf.recipes import quiet_config
 
 def tiny_method(
     method: str, output_dir: Path, num_tasks: int = 2, iterations_per_task: int = 3
 ) -> ContinualTrainerConfig:
     """A registered method (found through nerfstudio's entry points) on a tiny demo scene, CPU, small model."""
-    config = copy.deepcopy(continual_methods()[method])
-    config.machine.device_type = "cpu"
-    config.vis = "tensorboard"
-    config.output_dir = output_dir
-    config.steps_per_eval_batch = config.steps_per_eval_image = 10**9
-    config.logging.local_writer.enable = False
-    config.pipeline.datamanager = dataclasses.replace(
-        config.pipeline.datamanager, dataparser=demo_parser(num_frames=16), num_tasks=num_tasks,
-        iterations_per_task=iterations_per_task, train_num_rays_per_batch=128,
+    return quiet_config(
+        continual_methods()[method], output_dir, small=True, dataparser=demo_parser(num_frames=16),
+        num_tasks=num_tasks, iterations_per_task=iterations_per_task, train_num_rays_per_batch=128,
     )  # fmt: skip
-    model = config.pipeline.model
-    config.pipeline.model = dataclasses.replace(model, **(SMALL_NGP if hasattr(model, "num_levels") else SMALL_NERF))
-    config.set_timestamp()
-    return config
 
 
 def test_every_paper_method_is_registered_with_nerfstudio():
@@ -57,7 +40,7 @@ def test_method_trains_two_tasks_and_writes_its_accuracy_matrix(run_dir, method)
         "joint runs test every task from the start"
     )
     assert all(5.0 < value < 60.0 for row in matrix.psnr for value in row)
-    oracle = trainer.pipeline.datamanager.replay_oracle
+    oracle = trainer.pipeline.replay_oracle
     assert oracle.ready == config.pipeline.datamanager.replay, "only the replay methods keep a frozen copy"
 
 
@@ -136,8 +119,8 @@ def test_joint_batches_draw_pixels_of_every_task(run_dir):
     assert set(true_task[batch["indices"][:, 0]].tolist()) == {0, 1, 2}
     assert not batch["is_replay"].any()
     assert len(datamanager.seen_test_frames()) == len(datamanager.eval_dataset), "every task is tested from the start"
-    datamanager.open_next_task(trainer.pipeline.model)
-    assert not datamanager.replay_oracle.ready
+    trainer.pipeline.open_next_task()
+    assert not trainer.pipeline.replay_oracle.ready
     assert datamanager.train_dataset.task_pixels.shape[0] == int(datamanager.train_dataset.pixel_offsets[-1])
 
 

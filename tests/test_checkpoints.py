@@ -9,12 +9,12 @@ from typing import BinaryIO
 
 import pytest
 import torch
-from conftest import demo_parser, tiny_config
+from helpers import demo_parser, tiny_config
 from nerfstudio.scripts.train import train_loop
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.atomic_files import write_atomically, write_text_atomically
-from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 
 
 class Killed(BaseException):
@@ -64,7 +64,7 @@ def test_a_kill_during_a_save_leaves_the_last_complete_checkpoint_and_the_run_re
     checkpoint_dir = killed.get_checkpoint_dir()
     assert [path.name for path in checkpoint_dir.iterdir()] == ["step-000000003.ckpt"], "no partial file beside it"
     state = torch.load(checkpoint_dir / "step-000000003.ckpt", map_location="cpu", weights_only=True)
-    assert state["step"] == 3 and state["pipeline"]["datamanager._extra_state"]["current_task"] == 1
+    assert state["step"] == 3 and state["pipeline"]["_extra_state"]["task"]["current"] == 1
     after_kill = AccuracyMatrix.read(killed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     assert (len(after_kill.psnr), after_kill.finished, after_kill.status) == (2, False, "training")
 

@@ -1,13 +1,13 @@
-"""Task release, pixel isolation and the replay oracle, on the demo scene."""
+"""Task release, pixel isolation and the replay oracle (owned by the pipeline), on the demo scene."""
 
 import numpy as np
 import pytest
 import torch
-from conftest import demo_parser, tiny_config
+from helpers import demo_parser, tiny_config
 from PIL import Image
 
-from continual_nerf.continual_dataset import ClosedTaskError
-from continual_nerf.replay_oracle import ReplayOracle
+from continual_nerf.core.continual_dataset import ClosedTaskError
+from continual_nerf.core.replay_oracle import ReplayOracle
 
 
 @pytest.fixture
@@ -50,25 +50,24 @@ def test_batches_of_a_task_hold_only_its_pixels_and_closed_tasks_are_unreadable(
                 with pytest.raises(ClosedTaskError, match=f"belongs to task {other + 1}"):
                     dataset.get_numpy_image(int(dataset.frames_of_task(other)[0]))
         if task + 1 < datamanager.num_tasks:
-            datamanager.open_next_task(trainer.pipeline.model)
+            trainer.pipeline.open_next_task()
 
 
 def test_replayed_targets_are_the_frozen_oracles_colours(trainer):
     pipeline = trainer.pipeline
-    datamanager = pipeline.datamanager
-    datamanager.open_next_task(pipeline.model)
-    ray_bundle, batch = datamanager.next_train(0)
+    pipeline.open_next_task()
+    ray_bundle, batch = pipeline.datamanager.next_train(0)
+    pipeline.add_replay_targets(ray_bundle, batch)
     replay = batch["is_replay"]
     assert replay.any() and (~replay).any()
-    expected = datamanager.replay_oracle.render(ray_bundle[replay])
+    expected = pipeline.replay_oracle.render(ray_bundle[replay])
     assert torch.allclose(batch["image"][replay], expected, atol=1e-6)
 
 
 def test_oracle_is_frozen_during_a_step_and_only_one_copy_exists(trainer):
     pipeline = trainer.pipeline
-    datamanager = pipeline.datamanager
-    datamanager.open_next_task(pipeline.model)
-    oracle = datamanager.replay_oracle.model
+    pipeline.open_next_task()
+    oracle = pipeline.replay_oracle.model
     before = {name: p.detach().clone() for name, p in oracle.named_parameters()}
     student_before = {name: p.detach().clone() for name, p in pipeline.model.named_parameters()}
     trainer.train_iteration(step=0)
@@ -78,8 +77,8 @@ def test_oracle_is_frozen_during_a_step_and_only_one_copy_exists(trainer):
         "the student did learn in that step"
     )
     assert not oracle.training
-    datamanager.open_next_task(pipeline.model)
-    assert datamanager.replay_oracle.model is oracle, "the oracle is replaced in place, not duplicated"
+    pipeline.open_next_task()
+    assert pipeline.replay_oracle.model is oracle, "the oracle is replaced in place, not duplicated"
     assert sum(isinstance(m, ReplayOracle) for m in pipeline.modules()) == 1
     assert sum(m is oracle or m is pipeline.model for m in pipeline.modules()) == 2
     assert all(torch.equal(p, q) for p, q in zip(oracle.parameters(), pipeline.model.parameters())), (
@@ -92,8 +91,8 @@ def test_without_replay_batches_come_from_the_open_task_only(run_dir):
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     datamanager = trainer.pipeline.datamanager
-    datamanager.open_next_task(trainer.pipeline.model)
+    trainer.pipeline.open_next_task()
     _, batch = datamanager.next_train(0)
     assert not batch["is_replay"].any()
     assert set(datamanager.train_dataset.task_of_frame[batch["indices"][:, 0]].tolist()) == {1}
-    assert not datamanager.replay_oracle.ready
+    assert not trainer.pipeline.replay_oracle.ready

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import demo_parser, tiny_config, train
+from helpers import demo_parser, tiny_config, train
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 
 
 def test_replay_keeps_task_1_that_training_without_replay_forgets(run_dir, capsys):
@@ -43,8 +43,8 @@ def test_accuracy_matrix_and_a_checkpoint_per_task_are_written(finished_run):
     checkpoints = sorted((finished_run / "nerfstudio_models").glob("step-*.ckpt"))
     assert [c.name for c in checkpoints] == ["step-000000003.ckpt", "step-000000007.ckpt"]
     state = torch.load(checkpoints[0], map_location="cpu", weights_only=False)
-    assert any(key.startswith("datamanager.replay_oracle.model.") for key in state["pipeline"]), "oracle saved"
-    assert state["pipeline"]["datamanager._extra_state"]["current_task"] == 1, "task 2 was released at that point"
+    assert any(key.startswith("replay_oracle.model.") for key in state["pipeline"]), "oracle saved"
+    assert state["pipeline"]["_extra_state"]["task"]["current"] == 1, "task 2 was released at that point"
     assert set(state["optimizers"]) == {"proposal_networks", "fields"}
     assert (finished_run / "dataparser_transforms.json").exists()
 

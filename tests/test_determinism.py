@@ -8,11 +8,11 @@ from typing import List, Tuple
 import numpy as np
 import pytest
 import torch
-from conftest import demo_parser, tiny_config
+from helpers import demo_parser, tiny_config
 from nerfstudio.scripts.train import train_loop
 
-from continual_nerf.continual_trainer import ContinualTrainer
-from continual_nerf.task_schedule import TaskSplit
+from continual_nerf.core.continual_trainer import ContinualTrainer
+from continual_nerf.core.task_split import TaskSplit
 
 
 @pytest.fixture(autouse=True)

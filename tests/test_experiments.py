@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import DEMO_CACHE, demo_parser
+from helpers import DEMO_CACHE, demo_parser
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.experiments import ExperimentsConfig
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.experiments.cli import ExperimentsConfig
 
 METHODS = ("continual-ngp", "continual-ngp-incre", "continual-nerf-joint")
 

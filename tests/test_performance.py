@@ -12,30 +12,24 @@ from typing import Dict
 import numpy as np
 import pytest
 import torch
-from conftest import tiny_config
+from helpers import tiny_config
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
 from continual_nerf.bench.memory import train_recording_memory
 from continual_nerf.compilation import CompiledForward, warm_up
-from continual_nerf.continual_model import ContinualNGPModel, ContinualNGPModelConfig
-from continual_nerf.continual_pipeline import ContinualPipeline
+from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
+from continual_nerf.core.continual_pipeline import ContinualPipeline
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.replay_oracle import ReplayOracle
+from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.recipes import small_model
 
-SMALL_MODEL = ContinualNGPModelConfig(
-    num_levels=8,
-    log2_hashmap_size=14,
-    max_res=128,
-    num_nerf_samples_per_ray=16,
-    num_proposal_samples_per_ray=(32,),
-    replay_sample_fraction=1.0,
-)
+SMALL_MODEL = small_model(ContinualNGPModelConfig(replay_sample_fraction=1.0))
 
 
-def small_model(**options) -> ContinualNGPModel:
+def build_model(**options) -> ContinualNGPModel:
     torch.manual_seed(0)
     config = dataclasses.replace(SMALL_MODEL, **options)
     return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])), num_train_data=1)
@@ -67,8 +61,8 @@ def render(model: ContinualNGPModel, training: bool) -> Dict[str, torch.Tensor]:
 
 
 def test_compiled_and_eager_models_give_the_same_outputs():
-    eager = small_model(compile=False)
-    compiled = small_model(compile=True)
+    eager = build_model(compile=False)
+    compiled = build_model(compile=True)
     assert isinstance(compiled.field.mlp_head.forward, CompiledForward)
     assert compiled.state_dict().keys() == eager.state_dict().keys(), "compiling changed the checkpoint's keys"
     compiled.load_state_dict(eager.state_dict())
@@ -92,8 +86,8 @@ def test_compiled_and_eager_models_give_the_same_outputs():
 
 
 def test_detached_sample_positions_leave_every_parameter_gradient_unchanged():
-    expected = render(small_model(compile=False, detach_sample_positions=False), training=True)
-    actual = render(small_model(compile=False, detach_sample_positions=True), training=True)
+    expected = render(build_model(compile=False, detach_sample_positions=False), training=True)
+    actual = render(build_model(compile=False, detach_sample_positions=True), training=True)
     assert expected.keys() == actual.keys()
     for name in expected:
         torch.testing.assert_close(actual[name], expected[name], rtol=0, atol=0, msg=f"{name} differs")
@@ -143,20 +137,20 @@ def test_memory_stays_flat_over_many_tasks(tmp_path, monkeypatch):
 
 
 def test_the_replay_oracle_renders_with_a_fraction_of_the_samples():
-    model = small_model(compile=False, replay_sample_fraction=0.5)
+    model = build_model(compile=False, replay_sample_fraction=0.5)
     oracle = ReplayOracle()
     oracle.update(model)
     assert oracle.model.proposal_sampler.num_proposal_samples_per_ray == (16,)
     assert oracle.model.proposal_sampler.num_nerf_samples_per_ray == 8
     assert model.proposal_sampler.num_nerf_samples_per_ray == 16, "the model itself keeps its samples"
     with pytest.raises(ContinualConfigError, match="replay-sample-fraction must be positive"):
-        small_model(compile=False, replay_sample_fraction=0.0)
+        build_model(compile=False, replay_sample_fraction=0.0)
 
 
 def test_warm_up_compiles_at_set_up_and_leaves_the_model_as_it_was():
     from torch._dynamo.utils import counters
 
-    model = small_model(compile=True)
+    model = build_model(compile=True)
     sampler = model.proposal_sampler
     before = {name: p.detach().clone() for name, p in model.named_parameters()}
     counters_before, rng_before = (sampler._step, sampler._steps_since_update), torch.get_rng_state()
@@ -192,8 +186,8 @@ def test_compilation_failure_falls_back_to_eager_with_one_line(monkeypatch, caps
         return first_call
 
     monkeypatch.setattr(torch, "compile", failing_compile)
-    expected = render(small_model(compile=False), training=False)
-    actual = render(small_model(compile=True), training=False)
+    expected = render(build_model(compile=False), training=False)
+    actual = render(build_model(compile=True), training=False)
     assert CompiledForward.failed
     notices = [line for line in capsys.readouterr().out.splitlines() if "torch.compile unavailable" in line]
     assert len(notices) == 1 and "cc not found" in notices[0] and "running the model eager" in notices[0]

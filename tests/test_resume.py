@@ -10,11 +10,11 @@ import time
 from pathlib import Path
 
 import yaml
-from conftest import SUBPROCESS_ENV, demo_parser, ns_train_command
+from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command
 from nerfstudio.scripts.train import train_loop
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.task_schedule import split_into_tasks
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.task_split import split_into_tasks
 
 NUM_FRAMES, WIDTH, HEIGHT = 18, 24, 18
 NUM_TASKS, ITERATIONS_PER_TASK, STEPS_PER_SAVE = 3, 20, 25

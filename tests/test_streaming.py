@@ -14,13 +14,14 @@ from typing import List, Optional
 
 import numpy as np
 import pytest
-from conftest import demo_parser, tiny_config
+from helpers import demo_parser, tiny_config
 
-from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.stream_dataparser import CaptureWatcher, StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
-from continual_nerf.scripts.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
-from continual_nerf.streaming_datamanager import StreamingDataManager, StreamingDataManagerConfig
+from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
+from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
 NUM_FRAMES = 20
 BUDGET = 3
@@ -57,7 +58,7 @@ class CaptureWriter(threading.Thread):
         self.folder = folder
         self.ahead = ahead
         self.source = demo_frames()
-        self.datamanager: Optional[StreamingDataManager] = None
+        self.pipeline: Optional[ContinualPipeline] = None
         """Set once training is set up (set-up itself waits for the first task)."""
         self.error: Optional[BaseException] = None
 
@@ -89,9 +90,9 @@ class CaptureWriter(threading.Thread):
     def _wait_for_training_in_task(self, task: int) -> None:
         deadline = time.monotonic() + 120
         while not (
-            self.datamanager is not None
-            and self.datamanager.current_task == task
-            and self.datamanager.task_iterations >= self.ahead
+            self.pipeline is not None
+            and self.pipeline.task.current == task
+            and self.pipeline.budget.iterations_done >= self.ahead
         ):
             assert time.monotonic() < deadline, f"training never got {self.ahead} iterations into task {task + 1}"
             time.sleep(0.02)
@@ -150,7 +151,7 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
     writer.start()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    writer.datamanager = trainer.pipeline.datamanager
+    writer.pipeline = trainer.pipeline
     trainer.train()
     writer.join(timeout=30)
     assert writer.error is None, writer.error
@@ -260,14 +261,15 @@ def test_next_task_now_closes_the_task_being_captured(tmp_path):
     parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none")
     config = StreamingDataManagerConfig(dataparser=parser, iterations_per_task=10**6, replay=False, test_interval=2)
     datamanager = config.setup(device="cpu", test_mode="val")
-    assert datamanager.available_tasks == 2 and len(datamanager.dataparser.collecting) == 1
-    assert not datamanager.budget_spent(), "budget left, though task 2 has arrived"
-    datamanager.open_next_task(model=None)  # type: ignore[arg-type]  # no replay: the model is not read
-    assert datamanager.num_tasks == 3 and not datamanager.capture_finished, "the task being captured counts"
-    datamanager.request_next_task()
-    assert not datamanager.budget_spent(), "one frame is too few to close a task early"
+    lock = threading.Lock()
+    assert datamanager.tasks_available() == 2 and len(datamanager.dataparser.collecting) == 1
+    assert datamanager.await_next_task(requested=False, train_lock=lock), "task 2 has arrived"
+    datamanager.release(1)
+    assert not datamanager.capture_finished, "the task being captured will follow"
+    assert not datamanager.await_next_task(requested=True, train_lock=lock), "one frame is too few to close a task"
     write_frame(capture, 7, Path(demo_frames(num_frames=8).image_filenames[7]), frame_json(demo_frames(8).cameras, 7))
     datamanager.dataparser.poll()
-    assert datamanager.budget_spent() and datamanager.available_tasks == 3, "frames 6 and 7 closed as task 3"
-    datamanager.open_next_task(model=None)  # type: ignore[arg-type]
-    assert [len(task) for task in frames_of_tasks(datamanager)] == [3, 3, 2] and not datamanager.next_task_requested
+    assert datamanager.await_next_task(requested=True, train_lock=lock), "Next task now closes frames 6 and 7"
+    assert datamanager.tasks_available() == 3
+    datamanager.release(2)
+    assert [len(task) for task in frames_of_tasks(datamanager)] == [3, 3, 2]

@@ -18,11 +18,12 @@ from typing import Any, Callable, Dict, Iterator, Optional
 import numpy as np
 import pytest
 import websocket
-from conftest import demo_parser, tiny_config
+from helpers import demo_parser, tiny_config
 from viser._messages import CameraFrustumMessage
 
-from continual_nerf.continual_trainer import ContinualTrainer
-from continual_nerf.continual_viewer import PANEL_LABEL, task_colour
+from continual_nerf.core.continual_trainer import ContinualTrainer
+from continual_nerf.viewer.continual_panel import PANEL_LABEL
+from continual_nerf.viewer.task_cameras import task_colour
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_FLAGS = [
@@ -211,7 +212,7 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(live_run, chromium
     chromium.screenshot(tmp_path / "viewer_task2.png")
 
     chromium.click_input("Pause after this task")
-    wait_for("the tick to reach the server", lambda: trainer.pipeline.continual_panel.pause_after_task.value)
+    wait_for("the tick to reach the server", lambda: trainer.panel.pause_after_task.value)
     chromium.click_button("Next task now")
     wait_for("training to pause after task 2", lambda: trainer.training_state == "paused")
     wait_for("the panel to show task 3", lambda: chromium.input_value("Task") == f"3 of {NUM_TASKS}")
@@ -219,7 +220,7 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(live_run, chromium
     wait_for("nerfstudio's Resume Training button", lambda: "Resume Training" in chromium.page_text())
     step = trainer.step
     time.sleep(1.0)
-    assert trainer.step == step and datamanager.task_iterations == 0, "paused at the task boundary"
-    assert not trainer.pipeline.continual_panel.pause_after_task.value, "a one-off: unticked once it paused"
+    assert trainer.step == step and trainer.pipeline.budget.iterations_done == 0, "paused at the task boundary"
+    assert not trainer.panel.pause_after_task.value, "a one-off: unticked once it paused"
     wait_for("the tick to clear on the page", lambda: not chromium.input_checked("Pause after this task"))
     chromium.screenshot(tmp_path / "viewer_paused_before_task3.png")

@@ -3,36 +3,24 @@
 from __future__ import annotations
 
 import copy
-import dataclasses
 from pathlib import Path
 from typing import Any, Literal
 
 from nerfstudio.configs.method_configs import method_configs as nerfstudio_methods
 
-from continual_nerf.continual_model import without_lpips
-from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import continual_ngp
+from continual_nerf.recipes import quiet_config
 
 Device = Literal["cpu", "cuda"]
 
 
 def on_demo(
-    config: ContinualTrainerConfig,
-    demo: ContinualDemoDataParserConfig,
-    device: Device,
-    output_dir: Path,
-    **datamanager: Any,
+    config: ContinualTrainerConfig, demo: ContinualDemoDataParserConfig, device: Device, output_dir: Path, **options: Any
 ) -> ContinualTrainerConfig:
-    """A copy of `config` training on the `demo` scene, logging to tensorboard only, with datamanager options."""
-    config = copy.deepcopy(config)
-    config.vis = "tensorboard"
-    config.output_dir = output_dir
-    config.machine.device_type = device
-    config.logging.local_writer.enable = False
-    config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, dataparser=demo, **datamanager)
-    config.set_timestamp()
-    return config
+    """A quiet copy of `config` training on the `demo` scene, with datamanager options."""
+    return quiet_config(config, output_dir, device=device, dataparser=demo, **options)
 
 
 def nerfacto_on_demo(
@@ -45,11 +33,3 @@ def nerfacto_on_demo(
     config.pipeline.model = copy.deepcopy(nerfacto.pipeline.model)
     config.optimizers = copy.deepcopy(nerfacto.optimizers)
     return config
-
-
-def set_up(config: ContinualTrainerConfig) -> ContinualTrainer:
-    """nerfstudio's Trainer for `config`, set up as `ns-train` sets it up (offline)."""
-    trainer = config.setup(local_rank=0, world_size=1)
-    with without_lpips():  # nerfacto builds LPIPS at set-up, which would download weights
-        trainer.setup()
-    return trainer

@@ -24,10 +24,11 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch._subclasses.fake_tensor import FakeTensor
 
-from continual_nerf.bench.demo_runs import on_demo, set_up
-from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.bench.demo_runs import on_demo
+from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import continual_ngp
+from continual_nerf.recipes import set_up_like_ns_train
 
 MIB = 2**20
 
@@ -88,15 +89,14 @@ class TaskMemoryRecorder:
         return TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.record_if_task_ended)
 
     def record_if_task_ended(self, step: int) -> None:
-        datamanager = self.trainer.pipeline.datamanager
         # the pipeline's own callback runs first: it resets the count when it opens a task, and stops the run after the last
-        if datamanager.task_iterations == 0 or self.trainer.stop_training:
+        if self.trainer.pipeline.budget.iterations_done == 0 or self.trainer.stop_training:
             self.records.append(TaskMemory.measure(len(self.records) + 1))
 
 
 def train_recording_memory(config: ContinualTrainerConfig) -> List[TaskMemory]:
     """Run `config` through nerfstudio's Trainer; the memory after each of its tasks."""
-    trainer = set_up(config)
+    trainer = set_up_like_ns_train(config)
     recorder = TaskMemoryRecorder(trainer)
     trainer.callbacks.append(recorder.callback())  # after the pipeline's task switch
     trainer.train()

@@ -28,17 +28,17 @@ import matplotlib
 import torch
 import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.scripts.train import _set_random_seed
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo
 from continual_nerf.bench.memory import MIB, TaskMemory
 from continual_nerf.bench.throughput import ThroughputBenchmark
-from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.evaluation import evaluate_frames
+from continual_nerf.core.evaluation import evaluate_frames
 from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
+from continual_nerf.recipes import set_up_like_ns_train
 
 matplotlib.use("Agg")  # the PNG only; no display needed
 import matplotlib.pyplot as plt
@@ -76,27 +76,10 @@ class PSNRCurve:
     """Mean PSNR (dB) over all test frames at each evaluation."""
 
 
-class TrainingClock:
-    """Seconds spent in training iterations, counted by callbacks around nerfstudio's train_iteration."""
-
-    def __init__(self) -> None:
-        self.seconds = 0.0
-        self._started = 0.0
-
-    def start(self, step: int) -> None:
-        self._started = time.perf_counter()
-
-    def stop(self, step: int) -> None:
-        if torch.cuda.is_initialized():
-            torch.cuda.synchronize()  # CUDA kernels run asynchronously: count them in their iteration
-        self.seconds += time.perf_counter() - self._started
-
-
 def train_with_psnr_curve(config: ContinualTrainerConfig, eval_every: int) -> PSNRCurve:
     """Train `config` with nerfstudio's loop, evaluating every test frame every `eval_every` steps and at the end."""
-    _set_random_seed(config.machine.seed)  # as ns-train seeds a run
-    trainer = set_up(config)
-    clock, curve = TrainingClock(), PSNRCurve()
+    trainer = set_up_like_ns_train(config)
+    curve = PSNRCurve()
 
     def evaluate(step: int) -> None:
         if (step + 1) % eval_every and not trainer.stop_training:
@@ -106,12 +89,9 @@ def train_with_psnr_curve(config: ContinualTrainerConfig, eval_every: int) -> PS
         test_frames = pipeline.datamanager.eval_dataset
         psnr, _ = evaluate_frames(pipeline.model, test_frames, list(range(len(test_frames))))
         pipeline.train()
-        curve.seconds.append(clock.seconds)
+        curve.seconds.append(pipeline.budget.total_seconds)  # the pipeline's clock counts training iterations only
         curve.psnr.append(float(psnr.mean()))
 
-    # the clock starts after every other callback before an iteration and stops before any after it
-    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], clock.start))
-    trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], clock.stop))
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], evaluate))
     trainer.train()
     return curve

@@ -21,10 +21,11 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, set_up
-from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo
+from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
+from continual_nerf.recipes import set_up_like_ns_train
 
 REPLAY, REPLAY_OFF, NERFACTO = "continual-ngp", "continual-ngp-incre", "nerfacto"
 
@@ -98,10 +99,9 @@ class ThroughputBenchmark:
         }
 
     def last_task_trainer(self, config: ContinualTrainerConfig) -> ContinualTrainer:
-        trainer = set_up(config)
-        datamanager = trainer.pipeline.datamanager
-        while not datamanager.is_last_task:
-            datamanager.open_next_task(trainer.pipeline.model)
+        trainer = set_up_like_ns_train(config)
+        while not trainer.pipeline.is_last_task:
+            trainer.pipeline.open_next_task()
         return trainer
 
     def step_seconds(self, trainer: ContinualTrainer, step: int) -> float:

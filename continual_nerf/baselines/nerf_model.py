@@ -11,14 +11,15 @@ from nerfstudio.model_components.scene_colliders import AABBBoxCollider
 from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 from nerfstudio.utils import misc
 
-from continual_nerf.continual_model import without_lpips
-from continual_nerf.continual_pipeline import ContinualPipelineConfig
-from continual_nerf.distillation_loss import distillation_loss
+from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
+from continual_nerf.core.distillation_loss import distillation_loss
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.nerfstudio_compat import without_lpips
+from continual_nerf.validated_config import ValidatedConfig
 
 
 @dataclass
-class ContinualNeRFModelConfig(VanillaModelConfig):
+class ContinualNeRFModelConfig(ValidatedConfig, VanillaModelConfig):
     """Vanilla NeRF (coarse + fine MLP) with configurable MLP sizes; nerfstudio's defaults, the paper used 8 x 512."""
 
     _target: Type = field(default_factory=lambda: ContinualNeRFModel)
@@ -37,6 +38,16 @@ class ContinualNeRFModelConfig(VanillaModelConfig):
     background_color: Literal["last_sample", "black", "white"] = "last_sample"
     """Colour behind the last sample (no random: replayed targets are rendered without it); as nerfacto's default."""
 
+    def validate(self) -> None:
+        super().validate()
+        layers = self.base_mlp_num_layers
+        if not all(1 <= skip <= layers - 2 for skip in self.skip_connections):
+            # nerfstudio's MLP builds the wider layer only there, and fails at the first batch otherwise
+            raise ContinualConfigError(
+                f"--pipeline.model.skip-connections must lie between 1 and --pipeline.model.base-mlp-num-layers - 2 "
+                f"({layers - 2}), got {' '.join(map(str, self.skip_connections))}"
+            )
+
 
 class ContinualNeRFModel(NeRFModel):
     """nerfstudio's NeRFModel with the MLP sizes of its config, a scene-box collider and Eq. 4's loss."""
@@ -44,13 +55,6 @@ class ContinualNeRFModel(NeRFModel):
     config: ContinualNeRFModelConfig
 
     def populate_modules(self) -> None:
-        layers = self.config.base_mlp_num_layers
-        if not all(1 <= skip <= layers - 2 for skip in self.config.skip_connections):
-            # nerfstudio's MLP builds the wider layer only there, and fails at the first batch otherwise
-            raise ContinualConfigError(
-                f"--pipeline.model.skip-connections must lie between 1 and --pipeline.model.base-mlp-num-layers - 2 "
-                f"({layers - 2}), got {' '.join(map(str, self.config.skip_connections))}"
-            )
         # nothing may download at run time, and this model reports PSNR and SSIM only
         with without_lpips():
             super().populate_modules()

@@ -10,105 +10,32 @@ resumes a partly finished report; a run cut short is trained again in a new fold
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import shlex
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
-import numpy as np
-import torch
 import tyro
 from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion, all_dataparsers
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.models.nerfacto import NerfactoModelConfig
-from nerfstudio.plugins.registry import discover_methods
-from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from continual_nerf import report
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.atomic_files import write_text_atomically
-from continual_nerf.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.task_split import split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError, ContinualNerfError, first_line
-from continual_nerf.nerf_model import ContinualNeRFModelConfig
-from continual_nerf.task_schedule import split_into_tasks
+from continual_nerf.experiments import report
+from continual_nerf.experiments.plan import PAPER_TABLE1, Plan, RunSpec, continual_methods, is_implicit
+from continual_nerf.experiments.runner import RunSettings, find_finished_run, load_run, train_missing_runs
 
 PROG = "continual-nerf-experiments"
-RUNS_DIR = "runs"
-RUN_RECORD = "experiment_run.json"
-"""Per run: training seconds of every task, wall time, and the probe view rendered at every task end."""
 SETTINGS_FILE = "settings.json"
 """The settings that make runs comparable; a report folder only ever holds runs made with the same ones."""
-PAPER_TABLE1 = (
-    "continual-ngp", "continual-ngp-incre", "continual-ngp-ewc", "continual-nerf-incre", "continual-nerf-meil",
-    "continual-ngp-joint", "continual-nerf-joint",
-)  # fmt: skip
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """One training run: a method, a number of tasks and a per-task budget (iterations or seconds)."""
-
-    method: str
-    num_tasks: int
-    iterations_per_task: Optional[int]
-    seconds_per_task: Optional[float] = None
-
-    @property
-    def key(self) -> str:
-        budget = f"{self.seconds_per_task:g}s" if self.seconds_per_task is not None else f"{self.iterations_per_task}it"
-        return f"{self.method}_{self.num_tasks}tasks_{budget}"
-
-
-@dataclass
-class Plan:
-    """The runs behind each table; a run several tables need is trained once."""
-
-    table1: List[RunSpec]
-    table2: List[RunSpec]
-    table3: List[RunSpec]
-
-    def runs(self) -> List[RunSpec]:
-        return list(dict.fromkeys(self.table1 + self.table2 + self.table3))
-
-    def keys(self) -> Dict[str, List[str]]:
-        """Run keys per table, as results.json lists them."""
-        return {
-            "table1": [spec.key for spec in self.table1],
-            "table2": [spec.key for spec in self.table2],
-            "table3": [spec.key for spec in self.table3],
-        }
-
-
-def continual_methods() -> Dict[str, ContinualTrainerConfig]:
-    """Every registered nerfstudio method that trains task by task (this plugin's and any other's)."""
-    methods, _ = discover_methods()
-    return {name: config for name, config in methods.items() if isinstance(config, ContinualTrainerConfig)}
-
-
-def cpu_sized(model: InstantiateConfig) -> InstantiateConfig:
-    """The same kind of model, small enough that the default report trains in minutes on a CPU."""
-    if isinstance(model, NerfactoModelConfig):
-        return dataclasses.replace(
-            model, num_levels=8, log2_hashmap_size=15, max_res=128, num_proposal_samples_per_ray=(32,),
-            num_nerf_samples_per_ray=16, eval_num_rays_per_chunk=4096,
-        )  # fmt: skip
-    if isinstance(model, ContinualNeRFModelConfig):
-        return dataclasses.replace(
-            model, base_mlp_num_layers=4, base_mlp_layer_width=128, skip_connections=(2,), head_mlp_num_layers=1,
-            head_mlp_layer_width=64, num_coarse_samples=32, num_importance_samples=32, eval_num_rays_per_chunk=4096,
-        )  # fmt: skip
-    return model
 
 
 def _scene_name(dataparser: InstantiateConfig) -> str:
@@ -160,7 +87,7 @@ class ExperimentsConfig:
     device: Literal["cpu", "cuda"] = "cpu"
     """Device every run trains on."""
     seed: int = 0
-    """Seed of torch's random generator at the start of every run."""
+    """Seed of the random generators at the start of every run (as ns-train's --machine.seed)."""
 
     def main(self, command: str = PROG) -> Dict[str, Any]:
         """Check every option, train the runs not finished yet, write the report; returns results.json's content."""
@@ -174,7 +101,7 @@ class ExperimentsConfig:
         self.output_dir.mkdir(parents=True, exist_ok=True)
         if not (self.output_dir / SETTINGS_FILE).exists():
             write_text_atomically(self.output_dir / SETTINGS_FILE, json.dumps(self.comparable_settings(), indent=2))
-        self.train_missing_runs(plan, methods)
+        train_missing_runs(plan, methods, self.run_settings())
         results = self.write_report(plan, methods, command)
         self.print_table1(results)
         return results
@@ -184,7 +111,7 @@ class ExperimentsConfig:
         self.check_options(methods)
 
         def budget(method: str) -> Dict[str, Any]:
-            factor = self.implicit_budget_factor if _is_implicit(methods[method]) else 1.0
+            factor = self.implicit_budget_factor if is_implicit(methods[method]) else 1.0
             if self.seconds_per_task is not None:
                 return {"iterations_per_task": None, "seconds_per_task": self.seconds_per_task * factor}
             return {"iterations_per_task": max(1, round(self.iterations_per_task * factor))}
@@ -267,60 +194,17 @@ class ExperimentsConfig:
                 "choose another --output-dir"
             )
 
-    def run_config(self, spec: RunSpec, base: ContinualTrainerConfig) -> ContinualTrainerConfig:
-        """The method's registered configuration with this report's scene, budget, size and output folder."""
-        config = copy.deepcopy(base)
-        config.machine.device_type = self.device
-        config.vis = "tensorboard"
-        config.output_dir = self.output_dir / RUNS_DIR
-        config.experiment_name = spec.key
-        # the pipeline evaluates every seen task at each task end; nerfstudio's periodic evaluations only cost time
-        config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
-        config.save_only_latest_checkpoint = True  # enough to resume, render or evaluate the run; saves disk
-        config.logging.local_writer.enable = False  # this command shows the progress
-        config.pipeline.datamanager = dataclasses.replace(
-            config.pipeline.datamanager,
-            dataparser=copy.deepcopy(self.dataparser),
-            num_tasks=spec.num_tasks,
-            iterations_per_task=spec.iterations_per_task or 1,  # unused when the tasks are timed
-            seconds_per_task=spec.seconds_per_task,
+    def run_settings(self) -> RunSettings:
+        return RunSettings(
+            dataparser=self.dataparser,
+            report_dir=self.output_dir,
             test_interval=self.test_interval,
-            train_num_rays_per_batch=self.rays_per_batch,
+            rays_per_batch=self.rays_per_batch,
+            small=self.model_size == "cpu",
+            device=self.device,
+            seed=self.seed,
+            probe_task=self.probe_task,
         )
-        if self.model_size == "cpu":
-            config.pipeline.model = cpu_sized(config.pipeline.model)
-        config.set_timestamp()
-        return config
-
-    def train_missing_runs(self, plan: Plan, methods: Dict[str, ContinualTrainerConfig]) -> None:
-        runs = plan.runs()
-        missing = [spec for spec in runs if find_finished_run(self.output_dir, spec) is None]
-        CONSOLE.print(
-            f"[bold]{len(runs) - len(missing)} of {len(runs)} runs already finished in {self.output_dir}; "
-            f"training {len(missing)}"
-        )
-        progress = Progress(
-            TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=CONSOLE
-        )
-        with progress:
-            overall = progress.add_task("runs", total=len(missing))
-            for spec in missing:
-                bar = progress.add_task(spec.key, total=spec.num_tasks)
-                self.train_run(self.run_config(spec, methods[spec.method]), progress, bar)
-                progress.update(bar, visible=False)
-                progress.advance(overall)
-
-    def train_run(self, config: ContinualTrainerConfig, progress: Progress, bar: TaskID) -> None:
-        """Train one run as `ns-train` would, with a RunMonitor recording times and probe renders."""
-        started = time.perf_counter()
-        torch.manual_seed(self.seed)
-        writer.EVENT_WRITERS.clear()  # nerfstudio's writers are global: this run must not log into an earlier run's
-        config.save_config()
-        trainer = config.setup(local_rank=0, world_size=1)
-        trainer.setup()
-        monitor = RunMonitor(trainer, self.probe_task, progress, bar)
-        trainer.train()
-        monitor.finish(time.perf_counter() - started)
 
     def write_report(self, plan: Plan, methods: Dict[str, ContinualTrainerConfig], command: str) -> Dict[str, Any]:
         """results.json, the figures and report.md, all from the finished runs of `plan`."""
@@ -386,124 +270,6 @@ class ExperimentsConfig:
             )
         CONSOLE.print(table)
         CONSOLE.print(f"[bold green]Report: {self.output_dir / 'report.md'}")
-
-
-def _is_implicit(config: ContinualTrainerConfig) -> bool:
-    """Whether the method's model is the fully implicit NeRF (the paper gives those a longer budget)."""
-    return isinstance(config.pipeline.model, ContinualNeRFModelConfig)
-
-
-class RunMonitor:
-    """Callbacks added to one run's Trainer: an iteration clock, progress, and the probe view at every task end."""
-
-    def __init__(self, trainer: ContinualTrainer, probe_task: int, progress: Progress, bar: TaskID) -> None:
-        self.trainer, self.progress, self.bar = trainer, progress, bar
-        self.pipeline = trainer.pipeline
-        self.probe_frame = int(torch.nonzero(self.pipeline.datamanager.test_task_of_frame() == probe_task - 1)[0])
-        self.record: Dict[str, Any] = {
-            "task_train_seconds": [],
-            "wall_seconds": None,
-            "renders": [],
-            "ground_truth": None,
-        }
-        self._started = 0.0
-        self._seconds = 0.0
-        self._first_iteration = True
-        before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
-        # the clock stops before the pipeline's task end runs, so evaluation and checkpoints do not count as training
-        trainer.callbacks = [
-            TrainingCallback([before], self._start_clock),
-            TrainingCallback([after], self._stop_clock),
-            *trainer.callbacks,
-            TrainingCallback([after], self._after_iteration),
-        ]
-
-    def _start_clock(self, step: int) -> None:
-        self._started = time.perf_counter()
-
-    def _stop_clock(self, step: int) -> None:
-        if self._first_iteration:  # not counted: the first iteration in a process carries torch's start-up cost
-            self._first_iteration = False
-            return
-        self._seconds += time.perf_counter() - self._started
-
-    def _after_iteration(self, step: int) -> None:
-        datamanager = self.pipeline.datamanager
-        tasks_done = len(self.pipeline.accuracy.psnr)
-        if tasks_done > len(self.record["task_train_seconds"]):
-            self.record["task_train_seconds"].append(self._seconds)
-            self._seconds = 0.0
-            self._save_probe_render(tasks_done)
-            self.write()
-        task = min(datamanager.current_task + 1, datamanager.num_tasks)
-        description = f"{self.trainer.config.experiment_name}: task {task}/{datamanager.num_tasks}"
-        self.progress.update(
-            self.bar, completed=tasks_done, description=f"{description}, iteration {datamanager.task_iterations}"
-        )
-
-    @torch.no_grad()
-    def _save_probe_render(self, tasks_done: int) -> None:
-        dataset, model = self.pipeline.datamanager.eval_dataset, self.pipeline.model
-        camera = dataset.cameras[self.probe_frame : self.probe_frame + 1].to(model.device)
-        model.eval()
-        rendered = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
-        model.train()
-        name = f"task_renders/after_task_{tasks_done:02d}.png"
-        _save_png(rendered, self.trainer.base_dir / name)
-        self.record["renders"].append(name)
-        if self.record["ground_truth"] is None:
-            self.record["ground_truth"] = "task_renders/ground_truth.png"
-            _save_png(
-                dataset.get_image_float32(self.probe_frame)[..., :3],
-                self.trainer.base_dir / self.record["ground_truth"],
-            )
-
-    def write(self) -> None:
-        write_text_atomically(self.trainer.base_dir / RUN_RECORD, json.dumps(self.record, indent=1))
-
-    def finish(self, wall_seconds: float) -> None:
-        self.record["wall_seconds"] = wall_seconds
-        self.write()
-
-
-def _save_png(image: torch.Tensor, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((image.cpu().numpy() * 255).round().astype(np.uint8)).save(path)
-
-
-def find_finished_run(report_dir: Path, spec: RunSpec) -> Optional[Path]:
-    """The newest folder of `spec` whose accuracy matrix says finished, if any."""
-    matrices = sorted((report_dir / RUNS_DIR / spec.key).glob(f"*/*/{ACCURACY_MATRIX_FILENAME}"))
-    finished = [path.parent for path in matrices if AccuracyMatrix.read(path).finished]
-    return finished[-1] if finished else None
-
-
-def load_run(report_dir: Path, spec: RunSpec, run_dir: Path, joint: bool) -> report.Run:
-    """A finished run as results.json keeps it; paths relative to the report folder."""
-    matrix = AccuracyMatrix.read(run_dir / ACCURACY_MATRIX_FILENAME)
-    record_path = run_dir / RUN_RECORD
-    record = json.loads(record_path.read_text()) if record_path.exists() else {}
-    task_seconds = record.get("task_train_seconds", [])
-    relative = run_dir.relative_to(report_dir)
-    return {
-        "key": spec.key,
-        "method": spec.method,
-        "joint": joint,
-        "num_tasks": spec.num_tasks,
-        "iterations_per_task": spec.iterations_per_task,
-        "seconds_per_task": spec.seconds_per_task,
-        "run_dir": str(relative),
-        "psnr": matrix.psnr,
-        "ssim": matrix.ssim,
-        "mean_psnr": matrix.mean_psnr,
-        "steps": matrix.steps,
-        "task_train_seconds": task_seconds,
-        # a run killed between its last evaluation and its record has no complete timing: reported as n/a
-        "train_seconds": sum(task_seconds) if len(task_seconds) == spec.num_tasks else None,
-        "wall_seconds": record.get("wall_seconds"),
-        "renders": [str(relative / name) for name in record.get("renders", [])],
-        "ground_truth": str(relative / record["ground_truth"]) if record.get("ground_truth") else None,
-    }
 
 
 def entrypoint() -> None:

@@ -10,7 +10,7 @@ from nerfstudio.models.base_model import Model
 from torch import nn
 
 from continual_nerf.compilation import warm_up
-from continual_nerf.continual_model import ContinualNGPModelConfig
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 
 
 class ReplayOracle(nn.Module):

@@ -1,9 +1,10 @@
 """The streaming datamanager: tasks open as frames arrive in a capture folder that is still being written.
 
 Batch mode cuts a finished trajectory into `num_tasks` tasks; here the `continual-stream` dataparser cuts the
-capture as it grows (every `--frames-per-task` frames, or at a `.task` marker) and this datamanager releases those
-tasks one by one, with the batch mode's held-out test frames, replay oracle and budget. A task ends when its
-budget is spent and the next task has arrived; until then training refines the released tasks or waits.
+capture as it grows (every `--frames-per-task` frames, or at a `.task` marker) and this datamanager serves those
+tasks one by one, with the batch mode's held-out test frames; the pipeline's replay oracle and budget are the same.
+A task ends when its budget is spent and the next task has arrived; until then training refines the released
+tasks or waits.
 """
 
 from __future__ import annotations
@@ -12,20 +13,20 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from threading import Lock
-from typing import Any, Dict, Iterator, List, Literal, Type
+from typing import Any, Dict, Iterator, List, Literal, Optional, Type
 
 import numpy as np
+import tyro
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.ray_generators import RayGenerator
-from nerfstudio.models.base_model import Model
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from continual_nerf.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
-from continual_nerf.continual_dataset import ContinualDataset
+from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
+from continual_nerf.core.continual_dataset import ContinualDataset
+from continual_nerf.core.task_split import TaskSplit, split_into_tasks
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParser, StreamDataParserConfig, StreamFrame
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.task_schedule import TaskSplit, split_into_tasks
 
 
 @dataclass
@@ -36,7 +37,9 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
     """The datamanager this config builds."""
     dataparser: AnnotatedDataParserUnion = field(default_factory=StreamDataParserConfig)
     """Must be continual-stream: the capture folder, how it is cut into tasks, the fixed pose transform."""
-    num_tasks: int = 0
+    num_tasks: tyro.conf.Suppress[int] = 1
+    """Not used: the capture decides the tasks (--pipeline.datamanager.max-tasks caps them)."""
+    max_tasks: int = 0
     """Stop after this many tasks even while the capture goes on (0: train until the capture's end marker)."""
     idle: Literal["refine", "wait"] = "refine"
     """Budget spent, next task not here yet: keep training the released tasks, or wait (the viewer stays live)."""
@@ -48,18 +51,18 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
                 f"continual-ngp-stream reads a capture folder: use the continual-stream dataparser, "
                 f"not {type(self.dataparser).__name__}"
             )
-        if self.num_tasks < 0:
+        if self.max_tasks < 0:
             raise ContinualConfigError(
-                f"--pipeline.datamanager.num-tasks must be 0 (no limit) or more, got {self.num_tasks}"
+                f"--pipeline.datamanager.max-tasks must be 0 (no limit) or more, got {self.max_tasks}"
             )
         if self.joint:
             raise ContinualConfigError(
                 "--pipeline.datamanager.joint needs every task from the start; a capture has not sent them yet"
             )
 
-    def max_num_iterations(self) -> int:
-        """The capture decides how many tasks there are: a generous cap."""
-        return 10**9
+    def budgeted_iterations(self) -> Optional[int]:
+        """The capture decides how many tasks there are."""
+        return None
 
 
 @contextmanager
@@ -88,29 +91,24 @@ class StreamingDataManager(ContinualDataManager):
         super().__init__(config, *args, **kwargs)
 
     @property
-    def released_tasks(self) -> int:
+    def num_tasks(self) -> int:
+        """Tasks released so far (the datasets hold their frames)."""
         return len(self._train_frames)
 
-    @property
-    def available_tasks(self) -> int:
-        """Tasks complete in the capture folder, at most --num-tasks."""
+    def tasks_available(self) -> int:
+        """Tasks complete in the capture folder, at most --max-tasks."""
         count = len(self.dataparser.tasks)
-        return min(count, self.config.num_tasks) if self.config.num_tasks else count
+        return min(count, self.config.max_tasks) if self.config.max_tasks else count
 
     @property
     def capture_finished(self) -> bool:
-        """No task will follow the available ones: the capture ended, or --num-tasks is reached."""
-        return self.dataparser.ended or 0 < self.config.num_tasks <= len(self.dataparser.tasks)
+        """No task will follow the available ones: the capture ended, or --max-tasks is reached."""
+        return self.dataparser.ended or 0 < self.config.max_tasks <= len(self.dataparser.tasks)
 
-    @property
-    def num_tasks(self) -> int:
-        """Tasks known so far, counting the one being captured while the capture goes on."""
-        return self.available_tasks + (0 if self.capture_finished else 1)
+    def _next_task_ready(self) -> bool:
+        return self.tasks_available() > self.released_task + 1
 
-    def next_task_ready(self) -> bool:
-        return self.available_tasks > self.current_task + 1
-
-    def _release(self, frames: List[StreamFrame]) -> None:
+    def _append_task(self, frames: List[StreamFrame]) -> None:
         """Append a task; its held-out test frames follow the batch rule (every test_interval-th from its start)."""
         split = split_into_tasks(len(frames), 1, self.config.test_interval)
         start = len(self.frames)
@@ -125,8 +123,8 @@ class StreamingDataManager(ContinualDataManager):
             # training starts on the first task; ns-eval, ns-render and ns-viewer see every task there is
             if self.test_mode != "val":
                 self.dataparser.poll()
-            for task in range(1 if self.test_mode == "val" else self.available_tasks):
-                self._release(self.dataparser.tasks[task])
+            for task in range(1 if self.test_mode == "val" else self.tasks_available()):
+                self._append_task(self.dataparser.tasks[task])
         return ContinualDataset(
             subset_outputs(self.train_dataparser_outputs, self.task_split.all_train_frames()),
             self.task_split.train_task_of_frame(),
@@ -134,54 +132,58 @@ class StreamingDataManager(ContinualDataManager):
             for_training=self.test_mode == "val",
         )
 
-    def open_next_task(self, model: Model) -> None:
-        """Grow the datasets by the next task, then release it as the batch mode does."""
-        self._release(self.dataparser.tasks[self.released_tasks])
+    def release(self, task: int) -> None:
+        """Grow the datasets by the tasks up to `task`, then release it as the batch mode does."""
+        while self.num_tasks <= task:
+            self._append_task(self.dataparser.tasks[self.num_tasks])
         self.train_dataset = self.create_train_dataset()
         self.eval_dataset = self.create_eval_dataset()
         self.setup_eval()
-        super().open_next_task(model)
+        super().release(task)
         self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
         self._idle_reported = False
 
-    def budget_spent(self) -> bool:
-        """The open task ends once its budget is spent and the next task has arrived (or none will)."""
-        return super().budget_spent() and self._next_task_arrived()
+    def resume_at(self, task: int) -> None:
+        if self.test_mode == "val" and task > 0:
+            raise ContinualConfigError("continual-ngp-stream cannot resume training from a checkpoint after task 1")
+        super().resume_at(task)
 
     def get_training_callbacks(self, attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        assert attributes.trainer is not None
-        # the pipeline gathers these before its own, so they run before its budget check in every iteration
+        # the pipeline gathers these before its own, so new frames are read before its budget check
         location = TrainingCallbackLocation.AFTER_TRAIN_ITERATION
-        return [TrainingCallback([location], self._follow_capture, args=[attributes.trainer.train_lock])]
+        return [TrainingCallback([location], self._poll_capture)]
 
-    def _next_task_arrived(self) -> bool:
-        """Whether the open task may end; "Next task now" closes the task being captured early."""
-        if self.next_task_requested and not self.next_task_ready():
-            self.dataparser.close_task()
-        return self.next_task_ready() or self.capture_finished
-
-    def _follow_capture(self, train_lock: Lock, step: int) -> None:
-        """Read new frames every --poll-seconds; with the budget spent and no next task, refine or wait."""
+    def _poll_capture(self, step: int) -> None:
+        """Read new frames every --poll-seconds."""
         if time.monotonic() - self._last_poll >= self.dataparser.config.poll_seconds:
             self.dataparser.poll()
             self._last_poll = time.monotonic()
-        if self._next_task_arrived() or not ContinualDataManager.budget_spent(self):
-            return
+
+    def await_next_task(self, requested: bool, train_lock: Lock) -> bool:
+        """Whether the next task (or the capture's end) is there; "Next task now" closes the task being captured.
+
+        With the budget spent and no next task: with --idle wait, wait for it here (the viewer stays live); with
+        --idle refine, say so once and let the released tasks train on.
+        """
+        if requested and not self._next_task_ready():
+            self.dataparser.close_task()
+        if self._next_task_ready() or self.capture_finished:
+            return True
         if self.config.idle == "wait":
-            folder = self.dataparser.config.data
-            CONSOLE.log(f"Task {self.current_task + 1}: budget spent, waiting for frames in {folder}")
+            CONSOLE.log(f"Task {self.released_task + 1}: budget spent, waiting for frames in {self.dataparser.config.data}")
             with released(train_lock):  # the viewer renders under the train lock
-                self.dataparser.wait_until(self._next_task_arrived)
+                self.dataparser.wait_until(lambda: self._next_task_ready() or self.capture_finished)
             self._last_poll = time.monotonic()
-        elif not self._idle_reported:
-            CONSOLE.log(f"Task {self.current_task + 1}: budget spent, refining until the next task's frames arrive")
+            return True
+        if not self._idle_reported:
+            CONSOLE.log(f"Task {self.released_task + 1}: budget spent, refining until the next task's frames arrive")
             self._idle_reported = True
+        return False
+
+    def waiting_text(self) -> str:
+        doing = "refining" if self.config.idle == "refine" else "waiting"
+        return f"budget spent, {doing} until the next task arrives ({len(self.dataparser.collecting)} frames so far)"
 
     def schedule(self) -> Dict[str, int]:
         # the capture folder, not options, decides the tasks and their frames
         return {"test_interval": self.config.test_interval}
-
-    def set_extra_state(self, state: Dict[str, Any]) -> None:
-        if self.test_mode == "val" and int(state["current_task"]) > 0:
-            raise ContinualConfigError("continual-ngp-stream cannot resume training from a checkpoint after task 1")
-        super().set_extra_state(state)

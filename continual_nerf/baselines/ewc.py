@@ -14,8 +14,8 @@ from typing import Callable, Dict, Type
 import torch
 from torch import Tensor, nn
 
-from continual_nerf.continual_model import ContinualNGPModel, ContinualNGPModelConfig
-from continual_nerf.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.errors import ContinualConfigError
 
 EWC_LOSS = "ewc_loss"
@@ -85,6 +85,11 @@ class ContinualNGPEWCModelConfig(ContinualNGPModelConfig):
     ewc_lambda: float = 1e6
     """Weight lambda of the penalty lambda/2 * sum F (phi - phi_ref)^2 (demo room: 1e4 barely acts, 1e8 stalls)."""
 
+    def validate(self) -> None:
+        super().validate()
+        if self.ewc_lambda < 0:
+            raise ContinualConfigError(f"--pipeline.model.ewc-lambda must not be negative, got {self.ewc_lambda}")
+
 
 class ContinualNGPEWCModel(ContinualNGPModel):
     """ContinualNGPModel plus the EWC penalty over all its trainable parameters."""
@@ -93,10 +98,6 @@ class ContinualNGPEWCModel(ContinualNGPModel):
 
     def populate_modules(self) -> None:
         super().populate_modules()
-        if self.config.ewc_lambda < 0:
-            raise ContinualConfigError(
-                f"--pipeline.model.ewc-lambda must not be negative, got {self.config.ewc_lambda}"
-            )
         self.ewc = EWCPenalty(self.consolidated_parameters())
 
     def consolidated_parameters(self) -> Dict[str, Tensor]:
@@ -126,6 +127,11 @@ class EWCPipelineConfig(ContinualPipelineConfig):
     fisher_batches: int = 8
     """Batches of the finished task whose squared loss gradients are averaged into its Fisher information."""
 
+    def validate(self) -> None:
+        super().validate()
+        if self.fisher_batches < 1:
+            raise ContinualConfigError(f"--pipeline.fisher-batches must be at least 1, got {self.fisher_batches}")
+
 
 class EWCPipeline(ContinualPipeline):
     """ContinualPipeline whose task end consolidates the finished task into the model's EWC penalty."""
@@ -133,12 +139,7 @@ class EWCPipeline(ContinualPipeline):
     config: EWCPipelineConfig
     model: ContinualNGPEWCModel
 
-    def __init__(self, config: EWCPipelineConfig, *args, **kwargs) -> None:
-        if config.fisher_batches < 1:
-            raise ContinualConfigError(f"--pipeline.fisher-batches must be at least 1, got {config.fisher_batches}")
-        super().__init__(config, *args, **kwargs)
-
-    def consolidate_task(self) -> None:
+    def before_task_switch(self) -> None:
         parameters = self.model.consolidated_parameters()
 
         def task_loss() -> Tensor:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.task_schedule import split_into_tasks
+from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
+from continual_nerf.core.task_split import split_into_tasks
 
 
 @pytest.mark.parametrize("num_frames,num_tasks,interval", [(120, 10, 8), (37, 5, 8), (10, 5, 2), (9, 1, 3)])
@@ -35,17 +36,31 @@ def test_every_interval_th_frame_of_a_task_is_held_out():
 @pytest.mark.parametrize(
     "num_frames,num_tasks,interval,message",
     [
-        (10, 0, 8, "num-tasks must be at least 1, got 0"),
-        (10, -3, 8, "num-tasks must be at least 1, got -3"),
         (10, 6, 8, "num-tasks 6 is too large for 10 frames"),
         (10, 11, 8, "num-tasks 11 is too large for 10 frames"),
         (0, 2, 8, "the dataset has no frames"),
-        (10, 2, 1, "test-interval must be at least 2"),
     ],
 )
 def test_bad_splits_are_one_line_errors(num_frames, num_tasks, interval, message):
     with pytest.raises(ContinualConfigError, match=message) as error:
         split_into_tasks(num_frames, num_tasks, interval)
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"num_tasks": 0}, "--pipeline.datamanager.num-tasks must be at least 1, got 0"),
+        ({"test_interval": 1}, "--pipeline.datamanager.test-interval must be at least 2"),
+        ({"iterations_per_task": 0}, "--pipeline.datamanager.iterations-per-task must be at least 1, got 0"),
+        ({"seconds_per_task": -1.0}, "--pipeline.datamanager.seconds-per-task must be positive, got -1.0"),
+        ({"train_num_rays_per_batch": 0}, "--pipeline.datamanager.train-num-rays-per-batch must be at least 1"),
+    ],
+)
+def test_bad_task_options_are_one_line_errors_at_set_up(options, message):
+    config = ContinualDataManagerConfig(**options)
+    with pytest.raises(ContinualConfigError, match=message) as error:
+        config.setup(device="cpu")
     assert "\n" not in str(error.value)
 
 

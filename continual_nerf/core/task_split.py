@@ -1,4 +1,4 @@
-"""Splitting a capture trajectory into temporally contiguous tasks (paper, section 3)."""
+"""The task split: a capture trajectory cut into temporally contiguous tasks (paper, section 3)."""
 
 from __future__ import annotations
 
@@ -51,12 +51,6 @@ def split_into_tasks(
     """
     if num_frames < 1:
         raise ContinualConfigError("the dataset has no frames: nothing to split into tasks")
-    if num_tasks < 1:
-        raise ContinualConfigError(f"--pipeline.datamanager.num-tasks must be at least 1, got {num_tasks}")
-    if test_interval < 2:
-        raise ContinualConfigError(
-            f"--pipeline.datamanager.test-interval must be at least 2 (1 would hold out every frame), got {test_interval}"
-        )
     groups = np.arange(num_frames) if time_group is None else np.unique(np.asarray(time_group), return_inverse=True)[1]
     spans = np.array_split(np.arange(groups.max() + 1), num_tasks)
     train, test = [], []

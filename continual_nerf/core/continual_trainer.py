@@ -1,5 +1,6 @@
 """nerfstudio's Trainer, with the iteration count derived from the task budget, one-line errors for bad input,
-atomic checkpoints and a resume (`--load-dir`) that continues a killed run where it stopped."""
+atomic checkpoints, a resume (`--load-dir`) that continues a killed run where it stopped, and the continual
+panel in the viewer."""
 
 from __future__ import annotations
 
@@ -13,7 +14,6 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 
-from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.checkpoints import (
     checkpoint_steps,
     find_checkpoint,
@@ -23,16 +23,37 @@ from continual_nerf.checkpoints import (
     save_checkpoint_file,
 )
 from continual_nerf.compilation import warm_up
-from continual_nerf.errors import CheckpointError, ContinualNerfError, first_line
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
+from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
+from continual_nerf.nerfstudio_compat import set_resume_step
+from continual_nerf.validated_config import ValidatedConfig
+from continual_nerf.viewer.continual_panel import ContinualPanel
+
+UNBOUNDED_ITERATIONS = 10**9
+"""Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
 
 
 @dataclass
-class ContinualTrainerConfig(TrainerConfig):
-    """TrainerConfig whose max_num_iterations follows from num_tasks x the per-task budget."""
+class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
+    """TrainerConfig whose max_num_iterations follows from num_tasks x the per-task budget unless it is given."""
 
     _target: Type = field(default_factory=lambda: ContinualTrainer)
+    max_num_iterations: Optional[int] = None  # type: ignore[assignment]
+    """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False
     """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
+
+    def validate(self) -> None:
+        super().validate()
+        if self.max_num_iterations is not None and self.max_num_iterations < 1:
+            raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
+
+    def setup(self, **kwargs: Any) -> Any:
+        try:
+            return super().setup(**kwargs)
+        except ContinualNerfError as error:
+            raise SystemExit(f"{self.method_name}: error: {error}") from None
 
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes from, if any."""
@@ -60,9 +81,15 @@ class ContinualTrainer(Trainer):
     """Runs nerfstudio's training loop unchanged; the pipeline's callbacks switch tasks and stop it."""
 
     config: ContinualTrainerConfig
+    pipeline: ContinualPipeline
+
+    def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        super().__init__(config, local_rank, world_size)
+        self.panel: Optional[ContinualPanel] = None
+        """The viewer's continual-learning panel, when the viewer runs."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
-        self.config.max_num_iterations = self.config.pipeline.datamanager.max_num_iterations()
+        self.config.max_num_iterations = self._iterations_to_run()
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
@@ -71,6 +98,23 @@ class ContinualTrainer(Trainer):
         except ContinualNerfError as error:
             raise SystemExit(f"{self.config.method_name}: error: {error}") from None
         warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
+        if isinstance(self.viewer_state, Viewer):
+            pipeline = self.pipeline
+            self.panel = ContinualPanel(
+                pipeline.status, pipeline.request_next_task, lambda: pipeline.datamanager.train_dataset
+            )
+            self.callbacks += self.panel.training_callbacks(self)
+
+    def _iterations_to_run(self) -> int:
+        """The task budget's iterations (a generous cap when tasks are timed or streamed), or --max-num-iterations."""
+        budgeted = self.config.pipeline.datamanager.budgeted_iterations()
+        cap = self.config.max_num_iterations
+        if cap is None:
+            return budgeted if budgeted is not None else UNBOUNDED_ITERATIONS
+        if budgeted is None or cap < budgeted:
+            tasks_take = "" if budgeted is None else f" (its tasks take {budgeted})"
+            CONSOLE.print(f"[bold yellow]--max-num-iterations {cap} may end the run before its last task{tasks_take}")
+        return cap
 
     def train(self) -> None:
         accuracy = self.pipeline.accuracy
@@ -95,16 +139,15 @@ class ContinualTrainer(Trainer):
             return super()._load_checkpoint()
         state = read_checkpoint(path)
         self._load_states(state, path)
-        accuracy, datamanager = self.pipeline.accuracy, self.pipeline.datamanager
+        pipeline = self.pipeline
+        accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
         restore_rng_states(state["rng"])
-        self._start_step = state["step"] + 1
-        # nerfstudio runs max_num_iterations more steps: end where the uninterrupted run ends
-        self.config.max_num_iterations -= self._start_step
+        set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
-            f"Resuming from {path} at step {self._start_step}: task {datamanager.current_task + 1}/"
-            f"{datamanager.num_tasks}, {datamanager.task_iterations} iterations into it"
+            f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
+            f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
         )
 
     def _load_states(self, state: Dict[str, Any], path: Path) -> None:
@@ -144,7 +187,7 @@ class ContinualTrainer(Trainer):
 
     def _init_viewer_state(self) -> None:
         # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown
-        if isinstance(self.viewer_state, Viewer):
-            self.pipeline.continual_panel.attach(self.viewer_state, self)
+        if isinstance(self.viewer_state, Viewer) and self.panel is not None:
+            self.panel.attach(self.viewer_state, self)
         else:
             super()._init_viewer_state()

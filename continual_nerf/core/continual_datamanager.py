@@ -1,36 +1,39 @@
-"""The continual datamanager: releases one task's images at a time and keeps the replay oracle.
+"""The continual datamanager: serves the pixels and rays of the released tasks, one task's images at a time.
 
-Every training batch samples rays uniformly over all pixels of the tasks released so far. Rays of
-the open task carry their pixels; rays of earlier tasks carry the replay oracle's colours (Eq. 4).
+The pipeline decides which task is open (`release`); every training batch samples rays uniformly over all
+pixels of the tasks released so far (over the open task alone without replay). Rays of the open task carry
+their pixels; rays of earlier tasks are marked `is_replay`, for the pipeline's replay oracle to supervise (Eq. 4).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from threading import Lock
 from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
+import tyro
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.model_components.ray_generators import RayGenerator
-from nerfstudio.models.base_model import Model
 
-from continual_nerf.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
+from continual_nerf.core.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
+from continual_nerf.core.task_split import TaskSplit, split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.replay_oracle import ReplayOracle
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.task_schedule import TaskSplit, split_into_tasks
+from continual_nerf.validated_config import ValidatedConfig
 
 
 @dataclass
-class ContinualDataManagerConfig(VanillaDataManagerConfig):
-    """Splits the dataparser's trajectory into tasks and streams them to the model one at a time."""
+class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
+    """Splits the dataparser's trajectory into tasks and serves them to the model one at a time."""
 
     _target: Type = field(default_factory=lambda: ContinualDataManager)
     dataparser: AnnotatedDataParserUnion = field(default_factory=ContinualDemoDataParserConfig)
@@ -47,9 +50,35 @@ class ContinualDataManagerConfig(VanillaDataManagerConfig):
     """Supervise rays of past tasks with the frozen copy of the model (Eq. 4); off trains each task alone."""
     joint: bool = False
     """Non-continual upper bound (iNGP*, NeRF*): every task's pixels sampled from the start; same budget and tests."""
+    # nerfstudio's options for image-based sampling: batches here are drawn from the released tasks' pixels
+    masks_on_gpu: tyro.conf.Suppress[bool] = False
+    """Not used: batches are drawn from the released tasks' pixels."""
+    images_on_gpu: tyro.conf.Suppress[bool] = False
+    """Not used: batches are drawn from the released tasks' pixels."""
+    train_num_images_to_sample_from: tyro.conf.Suppress[int] = -1
+    """Not used: batches are drawn from every pixel of the released tasks."""
+    train_num_times_to_repeat_images: tyro.conf.Suppress[int] = -1
+    """Not used: batches are drawn from every pixel of the released tasks."""
+    eval_num_images_to_sample_from: tyro.conf.Suppress[int] = -1
+    """Not used: evaluation covers the released tasks' test frames."""
+    eval_num_times_to_repeat_images: tyro.conf.Suppress[int] = -1
+    """Not used: evaluation covers the released tasks' test frames."""
+    eval_image_indices: tyro.conf.Suppress[Optional[Tuple[int, ...]]] = (0,)
+    """Not used: evaluation covers the released tasks' test frames."""
+    patch_size: tyro.conf.Suppress[int] = 1
+    """Not used: rays are sampled one pixel at a time."""
+    pixel_sampler: tyro.conf.Suppress[PixelSamplerConfig] = field(default_factory=PixelSamplerConfig)
+    """Not used: the datamanager samples the released tasks' pixels itself."""
 
     def validate(self) -> None:
-        """Reject budgets that cannot train, with a one-line message naming the option."""
+        super().validate()
+        if self.num_tasks < 1:
+            raise ContinualConfigError(f"--pipeline.datamanager.num-tasks must be at least 1, got {self.num_tasks}")
+        if self.test_interval < 2:
+            raise ContinualConfigError(
+                "--pipeline.datamanager.test-interval must be at least 2 (1 would hold out every frame), "
+                f"got {self.test_interval}"
+            )
         if self.seconds_per_task is not None and not self.seconds_per_task > 0:
             raise ContinualConfigError(
                 f"--pipeline.datamanager.seconds-per-task must be positive, got {self.seconds_per_task}"
@@ -63,10 +92,10 @@ class ContinualDataManagerConfig(VanillaDataManagerConfig):
                 f"--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got {self.train_num_rays_per_batch}"
             )
 
-    def max_num_iterations(self) -> int:
-        """Iterations the whole run needs; a generous cap when tasks are timed instead."""
+    def budgeted_iterations(self) -> Optional[int]:
+        """Iterations the whole task budget takes, or None when tasks are timed (or, streaming, counted by the capture)."""
         if self.seconds_per_task is not None:
-            return 10**9
+            return None
         return self.num_tasks * self.iterations_per_task
 
 
@@ -92,7 +121,7 @@ def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> Dataparser
 
 
 class ContinualDataManager(VanillaDataManager):
-    """Releases the trajectory task by task; the pixels of closed tasks are never read again."""
+    """Serves the released tasks' rays and the open task's pixels; the pixels of closed tasks are never read again."""
 
     config: ContinualDataManagerConfig
     train_dataset: ContinualDataset
@@ -108,27 +137,28 @@ class ContinualDataManager(VanillaDataManager):
         local_rank: int = 0,
         **kwargs,
     ):
-        config.validate()
-        self.current_task = 0
-        self.task_iterations = 0
-        self.task_seconds = 0.0
-        self.next_task_requested = False
-        """Set by the viewer's "Next task now": the open task's budget counts as spent."""
+        self.released_task = 0
+        """The open task: its pixels and the rays of every task up to it are served."""
         super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
-        self.replay_oracle = ReplayOracle(config.train_num_rays_per_batch)
 
     @property
     def num_tasks(self) -> int:
+        """Tasks the trajectory is split into."""
         return self.task_split.num_tasks
 
+    def tasks_available(self) -> int:
+        """Tasks whose frames are there to be released: every task of the split."""
+        return self.num_tasks
+
     @property
-    def is_last_task(self) -> bool:
-        return self.current_task == self.num_tasks - 1
+    def capture_finished(self) -> bool:
+        """Whether no task will follow the available ones (a finished trajectory: always)."""
+        return True
 
     @property
     def data_task(self) -> int:
-        """The train dataset's task whose pixels are open: the current one, or with joint the one of every frame."""
-        return 0 if self.config.joint else self.current_task
+        """The train dataset's task whose pixels are open: the released one, or with joint the one of every frame."""
+        return 0 if self.config.joint else self.released_task
 
     def _image_scale(self) -> float:
         """The datamanager's resolution scale times the dataparser's downscale (capture parsers set one)."""
@@ -171,35 +201,32 @@ class ContinualDataManager(VanillaDataManager):
 
     def seen_test_frames(self) -> torch.Tensor:
         """Test frames of the tasks released so far (of every task when joint)."""
-        last_seen = self.num_tasks - 1 if self.config.joint else self.current_task
+        last_seen = self.num_tasks - 1 if self.config.joint else self.released_task
         return torch.nonzero(self.test_task_of_frame() <= last_seen).view(-1)
 
-    def request_next_task(self) -> None:
-        """End the open task after the current iteration, whatever is left of its budget."""
-        self.next_task_requested = True
-
-    def budget_spent(self) -> bool:
-        if self.next_task_requested:
-            return True
-        if self.config.seconds_per_task is not None:
-            return self.task_seconds >= self.config.seconds_per_task
-        return self.task_iterations >= self.config.iterations_per_task
-
-    def open_next_task(self, model: Model) -> None:
-        """Freeze `model` as the replay oracle, close the current task and release the next one."""
-        if self.config.replay and not self.config.joint:
-            self.replay_oracle.update(model)
-        self.current_task += 1
-        self.task_iterations = 0
-        self.task_seconds = 0.0
-        self.next_task_requested = False
+    def release(self, task: int) -> None:
+        """Close the open task (its pixels are dropped) and open `task`, reading its pixels now."""
+        self.released_task = task
         if self.train_dataset.open_task != self.data_task:  # with joint, every frame stays open
             self.train_dataset.open(self.data_task)
+
+    def resume_at(self, task: int) -> None:
+        """Training (re)starts in `task`: its pixels are read at the first batch, once its images are checked."""
+        self.released_task = task
+        self.train_dataset.close()
+
+    def await_next_task(self, requested: bool, train_lock: Lock) -> bool:
+        """Whether the task after the open one (or the end of the run) is there: a finished trajectory has it."""
+        return True
+
+    def waiting_text(self) -> str:
+        """What training does once the open task's budget is spent, as the viewer shows it."""
+        return "budget spent"
 
     def sample_pixels(self, num_rays: int) -> torch.Tensor:
         """Flat pixel numbers drawn uniformly over all released tasks (over the open task alone without replay)."""
         start, end = self.train_dataset.open_task_pixel_range()
-        replaying = self.config.replay and self.replay_oracle.ready
+        replaying = self.config.replay and self.released_task > 0
         return torch.randint(0 if replaying else start, end, (num_rays,))
 
     def ray_indices(self, flat: torch.Tensor) -> torch.Tensor:
@@ -210,7 +237,7 @@ class ContinualDataManager(VanillaDataManager):
         width = self.train_dataset.cameras.width.view(-1)[frame].long()
         return torch.stack([frame, local // width, local % width], dim=-1)
 
-    def open_current_task(self) -> None:
+    def open_released_task(self) -> None:
         """Open the task training starts or resumes in, once the images still to be read are known to be readable."""
         later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
         check_image_headers(self.train_dataset, later_tasks.tolist())
@@ -218,10 +245,10 @@ class ContinualDataManager(VanillaDataManager):
         self.train_dataset.open(self.data_task)
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+        """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false."""
         if self.train_dataset.open_task != self.data_task:
-            self.open_current_task()
+            self.open_released_task()
         self.train_count += 1
-        self.task_iterations += 1
         flat = self.sample_pixels(self.config.train_num_rays_per_batch)
         indices = self.ray_indices(flat)
         ray_bundle = self.train_ray_generator(indices)
@@ -230,8 +257,6 @@ class ContinualDataManager(VanillaDataManager):
         current = ~is_replay
         image = torch.empty((len(flat), 3), device=self.device)
         image[current] = self.train_dataset.task_pixels[flat[current] - start].to(self.device)
-        if is_replay.any():
-            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(self.device)]).to(image.dtype)
         return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
 
     def _eval_frame(self, step: int) -> int:
@@ -270,18 +295,3 @@ class ContinualDataManager(VanillaDataManager):
                 option = f"--pipeline.datamanager.{key.replace('_', '-')}"
                 what = "frames in the dataset" if key == "num_frames" else option
                 raise ContinualConfigError(f"{what}: the checkpoint was trained with {saved[key]}, this run {value}")
-
-    def get_extra_state(self) -> Dict[str, Any]:
-        return {
-            "current_task": self.current_task,
-            "task_iterations": self.task_iterations,
-            "task_seconds": self.task_seconds,
-            "schedule": self.schedule(),
-        }
-
-    def set_extra_state(self, state: Dict[str, Any]) -> None:
-        self.check_resumable(state["schedule"])
-        self.current_task = int(state["current_task"])
-        self.task_iterations = int(state["task_iterations"])
-        self.task_seconds = float(state["task_seconds"])
-        self.train_dataset.close()  # the next batch opens the checkpoint's task

@@ -1,26 +1,24 @@
-"""continual-ngp's model: nerfstudio's hash-grid field and proposal sampler with the paper's sizes, trained with Eq. 4."""
+"""continual-ngp's hash-grid model: nerfstudio's hash-grid field and proposal sampler with the paper's sizes, trained with Eq. 4."""
 
 from __future__ import annotations
 
 import dataclasses
-from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Dict, Iterator, Tuple, Type
-from unittest import mock
+from typing import Dict, Tuple, Type
 
 import torch
-import torchmetrics.image.lpip
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
-from torch import nn
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
-from continual_nerf.distillation_loss import distillation_loss
+from continual_nerf.core.distillation_loss import distillation_loss
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.nerfstudio_compat import proposal_sampler_state, set_proposal_sampler_state, without_lpips
+from continual_nerf.validated_config import ValidatedConfig
 
 
 @dataclass
-class ContinualNGPModelConfig(NerfactoModelConfig):
+class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     """Hash grid + small MLP with the paper's hyperparameters (section 5.1); every nerfacto option still applies."""
 
     _target: Type = field(default_factory=lambda: ContinualNGPModel)
@@ -51,6 +49,13 @@ class ContinualNGPModelConfig(NerfactoModelConfig):
     replay_sample_fraction: float = 0.5
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with."""
 
+    def validate(self) -> None:
+        super().validate()
+        if not self.replay_sample_fraction > 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
+            )
+
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
         """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""
 
@@ -64,33 +69,12 @@ class ContinualNGPModelConfig(NerfactoModelConfig):
         )
 
 
-class _LPIPSNotComputed(nn.Module):
-    """Stands in for torchmetrics' LPIPS, whose construction downloads AlexNet weights."""
-
-    def __init__(self, **_: object) -> None:
-        super().__init__()
-
-    def forward(self, *_: torch.Tensor) -> torch.Tensor:
-        return torch.tensor(float("nan"))
-
-
-@contextmanager
-def without_lpips() -> Iterator[None]:
-    """Build nerfacto-family models offline: their set-up constructs LPIPS, which downloads AlexNet weights."""
-    with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
-        yield
-
-
 class ContinualNGPModel(NerfactoModel):
     """Nerfacto's field, sampler and renderers; the loss splits into Eq. 4's pixel and distillation terms."""
 
     config: ContinualNGPModelConfig
 
     def populate_modules(self) -> None:
-        if not self.config.replay_sample_fraction > 0:
-            raise ContinualConfigError(
-                f"--pipeline.model.replay-sample-fraction must be positive, got {self.config.replay_sample_fraction}"
-            )
         # nothing may download at run time, and this model reports PSNR and SSIM only
         with without_lpips():
             super().populate_modules()
@@ -116,9 +100,7 @@ class ContinualNGPModel(NerfactoModel):
     def get_extra_state(self) -> Dict[str, int]:
         # the proposal sampler's counters decide whether its networks are updated at a step; a checkpoint keeps them
         # so that a resumed run trains exactly as the uninterrupted one
-        sampler = self.proposal_sampler
-        return {"proposal_step": sampler._step, "proposal_steps_since_update": sampler._steps_since_update}
+        return proposal_sampler_state(self)
 
     def set_extra_state(self, state: Dict[str, int]) -> None:
-        self.proposal_sampler._step = int(state["proposal_step"])
-        self.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
+        set_proposal_sampler_state(self, state)

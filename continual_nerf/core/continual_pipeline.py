@@ -1,0 +1,230 @@
+"""The continual pipeline: owns the continual state (open task, budget, replay oracle, accuracy matrix) and switches
+tasks inside nerfstudio's Trainer loop, through training callbacks, so `ns-train` drives everything."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Mapping, Optional, Type
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils import writer
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch.cuda.amp.grad_scaler import GradScaler
+
+from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
+from continual_nerf.core.evaluation import evaluate_frames
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.core.task_budget import TaskBudget, TaskState
+from continual_nerf.validated_config import ValidatedConfig
+
+ORACLE_PREFIX = "replay_oracle.model."
+"""State-dict keys of the replay oracle's frozen copy in a checkpoint."""
+
+
+@dataclass
+class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
+    """Trains task after task; evaluates every task seen so far at the end of each."""
+
+    _target: Type = field(default_factory=lambda: ContinualPipeline)
+    datamanager: ContinualDataManagerConfig = field(default_factory=ContinualDataManagerConfig)
+    """Splits the trajectory into tasks and serves the released tasks' rays and pixels."""
+    model: ContinualNGPModelConfig = field(default_factory=ContinualNGPModelConfig)
+    """The hash-grid model trained with Eq. 4."""
+
+
+@dataclass(frozen=True)
+class ContinualStatus:
+    """What a continual run shows its user (the viewer's panel reads it): a snapshot, not a live view."""
+
+    current_task: int
+    """Index of the open task (0-based)."""
+    known_tasks: int
+    """Tasks known so far; while a capture is still running it counts the task being captured and may grow."""
+    capture_running: bool
+    """Whether more tasks may still arrive."""
+    progress: str
+    """The open task's budget: what is left, or what training does once it is spent."""
+    psnr_rows: List[List[float]]
+    """The accuracy matrix so far: test PSNR per task after each finished task."""
+    finished: bool
+    """Whether the run has trained its last task."""
+
+
+class ContinualPipeline(VanillaPipeline):
+    """VanillaPipeline plus the continual state and the task switch."""
+
+    config: ContinualPipelineConfig
+    datamanager: ContinualDataManager
+
+    def __init__(
+        self,
+        config: ContinualPipelineConfig,
+        device: str,
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        grad_scaler: Optional[GradScaler] = None,
+    ):
+        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        options = config.datamanager
+        self.task = TaskState()
+        self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
+        self.replay_oracle = ReplayOracle(options.train_num_rays_per_batch)
+        self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
+        self._clock_started = 0.0
+
+    @property
+    def replays(self) -> bool:
+        """Whether past tasks' rays are supervised by the replay oracle (Eq. 4)."""
+        return self.datamanager.config.replay and not self.datamanager.config.joint
+
+    @property
+    def known_tasks(self) -> int:
+        """Tasks known so far: available ones, plus the one being captured while a capture runs."""
+        return self.datamanager.tasks_available() + (0 if self.datamanager.capture_finished else 1)
+
+    @property
+    def is_last_task(self) -> bool:
+        return self.datamanager.capture_finished and self.task.current == self.datamanager.tasks_available() - 1
+
+    def request_next_task(self) -> None:
+        """End the open task after the current iteration, whatever is left of its budget (the viewer's button)."""
+        self.budget.request_next_task()
+
+    def status(self) -> ContinualStatus:
+        progress = self.budget.progress_text()
+        if self.budget.spent() and not self.budget.next_task_requested:
+            progress = self.datamanager.waiting_text()
+        return ContinualStatus(
+            current_task=self.task.current,
+            known_tasks=self.known_tasks,
+            capture_running=not self.datamanager.capture_finished,
+            progress=progress,
+            psnr_rows=[list(row) for row in self.accuracy.psnr],
+            finished=self.accuracy.finished,
+        )
+
+    def get_train_loss_dict(self, step: int):
+        ray_bundle, batch = self.datamanager.next_train(step)
+        self.add_replay_targets(ray_bundle, batch)
+        model_outputs = self._model(ray_bundle)
+        metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
+        loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
+        return model_outputs, loss_dict, metrics_dict
+
+    def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
+        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4)."""
+        is_replay = batch["is_replay"]
+        if is_replay.any():
+            image = batch["image"]
+            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)]).to(image.dtype)
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        trainer = training_callback_attributes.trainer
+        assert trainer is not None
+        return super().get_training_callbacks(training_callback_attributes) + [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._start_clock),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration, args=[trainer]),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._print_summary),
+        ]
+
+    def _start_clock(self, step: int) -> None:
+        self._clock_started = time.perf_counter()
+
+    def _stop_clock(self) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)  # CUDA kernels run asynchronously: count them in their iteration
+        return time.perf_counter() - self._clock_started
+
+    def _after_iteration(self, trainer: Trainer, step: int) -> None:
+        """Count the iteration into the budget; once it is spent and the next task is there, end the open task."""
+        self.budget.count(self._stop_clock())
+        if not self.budget.spent():
+            return
+        if not self.datamanager.await_next_task(self.budget.next_task_requested, trainer.train_lock):
+            return  # a capture still running: the released tasks keep training until the next one arrives
+        self.evaluate_seen_tasks(step, trainer.base_dir)
+        if self.is_last_task:
+            trainer.stop_training = True
+        else:
+            self.open_next_task()
+            CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} released at step {step + 1}")
+        trainer.save_checkpoint(step)
+
+    def before_task_switch(self) -> None:
+        """Runs at the end of every task but the last, while its pixels are still readable (e.g. EWC's Fisher)."""
+
+    def open_next_task(self) -> None:
+        """Freeze the model as the replay oracle, close the open task and release the next one."""
+        self.before_task_switch()
+        if self.replays:
+            self.replay_oracle.update(self.model)
+        self.task.current += 1
+        self.budget.start_task()
+        self.datamanager.release(self.task.current)
+
+    def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
+        """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
+        datamanager = self.datamanager
+        frames = datamanager.seen_test_frames()
+        self.eval()
+        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist())
+        self.train()
+        tasks = datamanager.test_task_of_frame()[frames]
+        seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
+        row_psnr = [float(psnr[tasks == j].mean()) for j in seen]
+        row_ssim = [float(ssim[tasks == j].mean()) for j in seen]
+        self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
+        self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step)
+        path = self.accuracy.write(output_dir)
+        writer.put_dict(
+            name="Continual PSNR per task", scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr)}, step=step
+        )
+        writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
+        CONSOLE.print(
+            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step + 1}: "
+            f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
+        )
+
+    def _print_summary(self, step: int) -> None:
+        if not self.accuracy.psnr:
+            CONSOLE.print("[bold yellow]No task finished: no accuracy matrix to report.")
+            return
+        state = "final" if self.accuracy.finished else f"after task {len(self.accuracy.psnr)} (run stopped early)"
+        CONSOLE.print(f"[bold green]Continual results, {state}:")
+        CONSOLE.print(f"Per-task test PSNR: {_format_row(self.accuracy.psnr[-1])}")
+        CONSOLE.print(f"Mean test PSNR over all test frames: {self.accuracy.mean_psnr[-1]:.2f} dB")
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
+        if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
+            self.replay_oracle.update(self.model)  # builds the copy the saved weights go into
+        return super().load_state_dict(state_dict, strict)
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        # the task, its progress and the accuracy matrix so far: a resumed run continues where this one stopped and
+        # its accuracy_matrix.json keeps the rows measured before the crash
+        return {
+            "task": self.task.state(),
+            "budget": self.budget.state(),
+            "schedule": self.datamanager.schedule(),
+            "accuracy": asdict(self.accuracy),
+        }
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        self.datamanager.check_resumable(state["schedule"])
+        self.task.load_state(state["task"])
+        self.budget.load_state(state["budget"])
+        self.accuracy = AccuracyMatrix(**state["accuracy"])
+        self.datamanager.resume_at(self.task.current)
+
+
+def _format_row(values: List[float]) -> str:
+    return "[" + ", ".join(f"{value:.2f}" for value in values) + "] dB"

@@ -1,0 +1,1 @@
+"""The paper's experiments as one command (`continual-nerf-experiments`): plan, runner, report and CLI."""

@@ -1,0 +1,159 @@
+"""Every place the plugin relies on nerfstudio internals (private attributes, methods or behaviours of 1.1.5).
+
+The rest of the package goes through nerfstudio's public classes and its documented extension points (configs with
+`_target`, entry points, training callbacks, ViewerElements). What is here may change in another nerfstudio
+release: each item says what it depends on, and tests/test_nerfstudio_compat.py fails loudly if one stops holding.
+pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from contextlib import contextmanager
+from typing import Any, Callable, Dict, Iterator, List
+from unittest import mock
+
+import numpy as np
+import torch
+import torchmetrics.image.lpip
+from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.engine.trainer import Trainer
+from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
+from torch import nn
+
+__all__ = ["VISER_NERFSTUDIO_SCALE_RATIO"]
+
+
+class _LPIPSNotComputed(nn.Module):
+    """Stands in for torchmetrics' LPIPS, whose construction downloads AlexNet weights."""
+
+    def __init__(self, **_: object) -> None:
+        super().__init__()
+
+    def forward(self, *_: torch.Tensor) -> torch.Tensor:
+        return torch.tensor(float("nan"))
+
+
+@contextmanager
+def without_lpips() -> Iterator[None]:
+    """Build nerfacto-family and vanilla NeRF models offline.
+
+    Depends on: `NerfactoModel.populate_modules` and `NeRFModel.populate_modules` importing
+    `LearnedPerceptualImagePatchSimilarity` from `torchmetrics.image.lpip` inside the method and building it there
+    (which downloads AlexNet weights). Patched for the duration of the set-up only.
+    """
+    with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
+        yield
+
+
+def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:
+    """The proposal sampler's counters, which decide whether its networks are updated at a step.
+
+    Depends on: `ProposalNetworkSampler._step` and `._steps_since_update` (private). A checkpoint keeps them so a
+    resumed run trains exactly as the uninterrupted one; warm-up restores them so compiling costs no update.
+    """
+    sampler = model.proposal_sampler
+    return {"proposal_step": sampler._step, "proposal_steps_since_update": sampler._steps_since_update}
+
+
+def set_proposal_sampler_state(model: NerfactoModel, state: Dict[str, int]) -> None:
+    model.proposal_sampler._step = int(state["proposal_step"])
+    model.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
+
+
+def hot_modules(model: NerfactoModel) -> List[nn.Module]:
+    """The modules every sample passes through: hash grids with their MLPs, colour MLP, encodings, contraction.
+
+    Depends on: the attribute names of `NerfactoField` (mlp_base, mlp_head, direction_encoding, spatial_distortion)
+    and `HashMLPDensityField` (mlp_base, or encoding + linear with use_linear).
+    """
+    field = model.field
+    modules = [field.mlp_base, field.mlp_head, field.direction_encoding]
+    for network in model.proposal_networks:
+        modules += [network.mlp_base] if not network.use_linear else [network.encoding, network.linear]
+    if field.spatial_distortion is not None:  # one instance, shared with the proposal networks
+        modules.append(field.spatial_distortion)
+    return modules
+
+
+def replace_forward(module: nn.Module, forward: Callable[..., Any]) -> None:
+    """Run `forward` instead of the module's own: parameters and state-dict keys stay nerfstudio's.
+
+    Depends on: nerfstudio calling these modules through `module(...)` (nn.Module.__call__ looks up `forward` on the
+    instance first), never through `type(module).forward`.
+    """
+    module.forward = forward  # type: ignore[method-assign]
+
+
+def seed_like_ns_train(seed: int) -> None:
+    """Seed Python's, numpy's and torch's generators as `ns-train` seeds rank 0.
+
+    Depends on: `nerfstudio.scripts.train._set_random_seed` (private), which `train_loop` calls before set-up.
+    """
+    # imported here: nerfstudio.scripts.train discovers the plugins' methods, and this module is imported by them
+    from nerfstudio.scripts.train import _set_random_seed
+
+    _set_random_seed(seed)
+
+
+def set_resume_step(trainer: Trainer, start_step: int) -> None:
+    """Make nerfstudio's loop continue at `start_step` and end where the uninterrupted run ends.
+
+    Depends on: `Trainer.train` running `range(self._start_step, self._start_step + max_num_iterations)`: nerfstudio
+    1.1.5 counts max_num_iterations from the resumed step (later releases count from 0, which this would then cut
+    short; the resume test catches it).
+    """
+    trainer._start_step = start_step
+    trainer.config.max_num_iterations -= start_step
+
+
+def init_scene_without_frustums(viewer: Viewer, train_dataset: InputDataset, train_state: str) -> None:
+    """Set up `viewer`'s scene (scene box, training state, ...) without drawing a frustum per training image.
+
+    Depends on: `Viewer.init_scene` drawing `config.max_num_display_images` frustums, reading their pixels, and
+    doing nothing else per image. The continual panel draws the released tasks' frustums itself.
+    """
+    config = viewer.config
+    viewer.config = dataclasses.replace(config, max_num_display_images=0)
+    try:
+        viewer.init_scene(train_dataset=train_dataset, train_state=train_state)  # type: ignore[arg-type]
+    finally:
+        viewer.config = config
+
+
+def register_frustum(viewer: Viewer, frame: int, handle: Any, camera_to_world: np.ndarray) -> None:
+    """Record a frustum where nerfstudio's viewer keeps its own, so "Hide Train Cams" and camera updates reach it.
+
+    Depends on: `Viewer.camera_handles` and `Viewer.original_c2w`, dicts keyed by training-frame index.
+    """
+    viewer.camera_handles[frame] = handle
+    viewer.original_c2w[frame] = camera_to_world
+
+
+def set_current_camera(viewer: Viewer, frame: int) -> None:
+    """Tell the viewer the browser looks through training frame `frame` (as a click on its frustum does).
+
+    Depends on: `Viewer.current_camera_idx`, which nerfstudio's own frustum click handler sets.
+    """
+    viewer.current_camera_idx = frame
+
+
+def training_cameras_shown(viewer: Viewer) -> bool:
+    """Whether the viewer shows training cameras now. Depends on: `Viewer.hide_images`, the "Hide Train Cams" button,
+    which is visible while the cameras are shown."""
+    return bool(viewer.hide_images.visible)
+
+
+def panel_order(viewer: Viewer) -> float:
+    """GUI order just below nerfstudio's status lines, above its tabs. Depends on: `Viewer.stats_markdown`."""
+    return viewer.stats_markdown.order + 0.5
+
+
+def show_resume_button(viewer: Viewer) -> None:
+    """Show "Resume Training" where "Pause Training" was, after the plugin paused the Trainer itself.
+
+    Depends on: `Viewer.pause_train` and `Viewer.toggle_pause_button`, nerfstudio's pause/resume button pair.
+    """
+    if viewer.pause_train.visible:
+        viewer.toggle_pause_button()

@@ -1,0 +1,1 @@
+"""The continual run in nerfstudio's viser viewer: the task panel and the released tasks' cameras."""
