@@ -33,7 +33,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from continual_nerf.dataparsers.capture import CaptureDataParserConfig, fit_into_box, fitted_poses
-from continual_nerf.dataparsers.ordered_capture_dataparser import natural_key, parse_intrinsics, transforms_pose
+from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
