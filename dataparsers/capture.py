@@ -1,4 +1,4 @@
-"""What every real-capture dataparser shares: frame selection, pose checks and scene normalisation.
+"""What every real-capture dataparser shares: frame selection, pose checks, image sizes and scene normalisation.
 
 A reader turns its dataset into `CaptureFrames` (metric camera-to-world poses in nerfstudio's OpenGL
 convention, in capture order); `capture_outputs` turns those into nerfstudio's DataparserOutputs.
@@ -17,6 +17,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
@@ -89,6 +90,15 @@ def check_pose(matrix: np.ndarray, source: str) -> None:
     rotation = matrix[:3, :3]
     if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-3)):
         raise DatasetError(f"{source}: pose is not a rigid transform (its 3x3 block is not a rotation)")
+
+
+def image_size(path: Path) -> Tuple[int, int]:
+    """Width and height from the image header (PIL does not decode the pixels for this)."""
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, UnidentifiedImageError) as error:
+        raise DatasetError(f"{path}: cannot read image ({str(error).splitlines()[0]})") from None
 
 
 def select_frames(frames: CaptureFrames, config: CaptureDataParserConfig) -> CaptureFrames:

@@ -21,8 +21,8 @@ from continual_nerf.dataparsers.capture import (
     CaptureFrames,
     capture_outputs,
     check_pose,
+    image_size,
 )
-from continual_nerf.dataparsers.scannet_dataparser import image_size
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 
