@@ -15,8 +15,9 @@ from conftest import tiny_config, train
 from PIL import Image
 
 from continual_nerf.dataparsers.tfrecord import Message, crc32c, masked_crc32c
-from continual_nerf.dataparsers.waymo_dataparser import (
-    CAMERA_IDS,
+from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig, capture_frames, read_segment
+from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
+from continual_nerf.dataparsers.waymo_v2 import (
     EXTRINSIC,
     HEIGHT,
     IMAGE,
@@ -25,9 +26,6 @@ from continual_nerf.dataparsers.waymo_dataparser import (
     TIMESTAMP,
     VEHICLE_POSE,
     WIDTH,
-    WaymoDataParserConfig,
-    capture_frames,
-    read_segment,
     read_vehicle_poses,
 )
 from continual_nerf.errors import ContinualConfigError, DatasetError
