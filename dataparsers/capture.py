@@ -20,13 +20,14 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.validated_config import ValidatedConfig
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplied onto an OpenCV camera-to-world matrix (looks down +z, +y down) gives OpenGL's."""
 
 
 @dataclass
-class CaptureDataParserConfig(DataParserConfig):
+class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
     """Options every real-capture dataparser has."""
 
     _target: Type = field(default_factory=lambda: None)
@@ -43,7 +44,8 @@ class CaptureDataParserConfig(DataParserConfig):
     scene_scale: float = 1.0
     """Extra factor on top of the automatic scale that fits all camera centres into [-1, 1]."""
 
-    def check_options(self) -> None:
+    def validate(self) -> None:
+        super().validate()
         for name in ("frame_stride", "downscale_factor"):
             if getattr(self, name) < 1:
                 raise ContinualConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
@@ -138,7 +140,6 @@ def fitted_poses(camera_to_worlds: np.ndarray, transform: np.ndarray, scale: flo
 
 def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> DataparserOutputs:
     """Select, orient, centre and scale the frames into nerfstudio's box; DataparserOutputs in capture order."""
-    config.check_options()
     frames = select_frames(frames, config)
     transform, scale = fit_into_box(frames.camera_to_worlds, config.orientation_method, config.scene_scale)
     distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()

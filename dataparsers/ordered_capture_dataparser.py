@@ -69,8 +69,8 @@ class OrderedCaptureDataParserConfig(CaptureDataParserConfig):
     images_dir: Optional[Path] = None
     """Images of a COLMAP model; default: the `images` folder next to it (<scene>/images for <scene>/sparse/0)."""
 
-    def check_options(self) -> None:
-        super().check_options()
+    def validate(self) -> None:
+        super().validate()
         if self.order not in get_args(Order):
             raise ContinualConfigError(f"--order must be one of {', '.join(get_args(Order))}, got {self.order}")
 
@@ -304,7 +304,6 @@ class OrderedCaptureDataParser(DataParser):
     config: OrderedCaptureDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self.config.check_options()
         listed, source = read_listed_frames(self.config)
         permutation = capture_order(listed, self.config.order, source)
         return capture_outputs(stack_frames([listed[index] for index in permutation]), self.config)

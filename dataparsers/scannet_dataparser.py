@@ -295,7 +295,6 @@ class ContinualScanNetDataParser(DataParser):
         return frames
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self.config.check_options()
         source = find_source(self.config.data)
         frames = self._read_sens(source) if source.is_file() else read_exported_folder(source)
         return capture_outputs(frames, self.config)

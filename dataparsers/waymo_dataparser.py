@@ -43,8 +43,8 @@ class WaymoDataParserConfig(CaptureDataParserConfig):
     max_frames: Optional[int] = None
     """Keep at most this many timestamps, from the start of the segment, after the stride."""
 
-    def check_options(self) -> None:
-        super().check_options()
+    def validate(self) -> None:
+        super().validate()
         if not self.cameras:
             raise ContinualConfigError("--cameras must name at least one camera")
         unknown = [name for name in self.cameras if name not in CAMERA_IDS]
@@ -165,7 +165,6 @@ class WaymoDataParser(DataParser):
     config: WaymoDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self.config.check_options()
         frames = capture_frames(read_segment(self.config))
         # the stride and the cap already acted on timestamps; applied again they would act on single images
         return capture_outputs(frames, dataclasses.replace(self.config, frame_stride=1, max_frames=None))

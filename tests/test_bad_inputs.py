@@ -29,10 +29,13 @@ from test_waymo_dataparser import CAMERAS, corrupt, v1_frame, write_v1
 
 from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.continual_trainer import ContinualTrainerConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
+from continual_nerf.errors import ContinualConfigError
 
 
 @dataclass
@@ -298,6 +301,34 @@ def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInp
         assert AccuracyMatrix.read(results).status == "failed", "the folder says the run did not finish"
     elif config.get_base_dir() != earlier:
         assert not results.exists() and not list(config.get_base_dir().rglob("*.ckpt")), "nothing trained"
+
+
+# ---- dataparser options, checked when the parser is set up ----
+
+PARSER_OPTIONS = [
+    (ContinualDemoDataParserConfig(num_frames=0), "continual-demo --num-frames must be at least 1, got 0"),
+    (ContinualDemoDataParserConfig(fov_degrees=180.0), "continual-demo --fov-degrees must be in (0, 180), got 180.0"),
+    (
+        OrderedCaptureDataParserConfig(order="random"),
+        "--order must be one of auto, timestamp, filename, file, got random",
+    ),
+    (ContinualScanNetDataParserConfig(downscale_factor=0), "--downscale-factor must be at least 1, got 0"),
+    (ContinualTumDataParserConfig(max_frames=0), "--max-frames must be at least 1, got 0"),
+    (ContinualTumDataParserConfig(cx=-1.0), "continual-tum --cx must be positive, got -1.0"),
+    (WaymoDataParserConfig(cameras=("FRONT", "FRONT")), "--cameras names a camera twice: FRONT FRONT"),
+    (StreamDataParserConfig(poll_seconds=0.0), "--poll-seconds must be positive, got 0.0"),
+    (
+        StreamDataParserConfig(normalization="file"),
+        "--normalization file needs --transform-file (a dataparser_transforms.json)",
+    ),
+]
+
+
+@pytest.mark.parametrize("parser, message", PARSER_OPTIONS, ids=[type(p).__name__ for p, _ in PARSER_OPTIONS])
+def test_dataparser_options_fail_at_setup_before_any_data_is_read(parser: DataParserConfig, message: str):
+    with pytest.raises(ContinualConfigError) as raised:
+        parser.setup()  # the default data paths do not exist: reading them would fail differently
+    assert str(raised.value) == message
 
 
 # ---- through the real ns-train ----
