@@ -31,6 +31,7 @@ class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
     """Options every real-capture dataparser has."""
 
     _target: Type = field(default_factory=lambda: None)
+    """The dataparser a capture format's config builds (this base builds none)."""
     data: Path = Path()
     """Folder (or file) of the capture."""
     frame_stride: int = 1

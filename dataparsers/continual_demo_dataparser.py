@@ -29,6 +29,7 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """A camera walking along a textured room, generated from a seed (no download, exact poses)."""
 
     _target: Type = field(default_factory=lambda: ContinualDemoDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/continual-demo")
     """Folder the rendered scene is written to, and reused from when it already holds the same scene."""
     num_frames: int = 120

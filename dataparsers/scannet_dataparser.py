@@ -42,6 +42,7 @@ class ContinualScanNetDataParserConfig(CaptureDataParserConfig):
     """A ScanNet scene in capture order: SensReader's exported folder or the raw `<scene>.sens` file."""
 
     _target: Type = field(default_factory=lambda: ContinualScanNetDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/scannet/scene0101_00")
     """Exported scene folder (color/, pose/, intrinsic/), a raw `<scene>.sens` file, or a folder holding one."""
     sens_frames_cache: Optional[Path] = None

@@ -51,6 +51,7 @@ class ContinualTumDataParserConfig(CaptureDataParserConfig):
     """A TUM RGB-D sequence in capture order: rgb.txt images posed from groundtruth.txt by timestamp."""
 
     _target: Type = field(default_factory=lambda: ContinualTumDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/tum/rgbd_dataset_freiburg1_desk")
     """Sequence folder (rgb.txt, groundtruth.txt, rgb/); freiburg1/2/3 in its name picks the sensor calibration."""
     association: Literal["nearest", "interpolate"] = "nearest"

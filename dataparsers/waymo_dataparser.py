@@ -30,6 +30,7 @@ class WaymoDataParserConfig(CaptureDataParserConfig):
     """A Waymo Open Dataset segment (v2 Parquet root or v1 .tfrecord), all chosen cameras in time order."""
 
     _target: Type = field(default_factory=lambda: WaymoDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/waymo")
     """A v2 root (camera_image/, camera_calibration/, vehicle_pose/ of <segment>.parquet) or a v1 .tfrecord file."""
     segment: Optional[str] = None
