@@ -30,7 +30,8 @@ from continual_nerf.dataparsers.waymo_v2 import (
 )
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
-WAYMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo"
+WAYMO = Path(__file__).parent / "data" / "waymo"
+"""Real Waymo Open Dataset files (origin and licence in its README.md)."""
 REAL_V1 = WAYMO / "v1_one_frame_five_cameras.tfrecord"
 REAL_V2_VEHICLE_POSE = WAYMO / "v2_vehicle_pose_199_frames.parquet"
 SEGMENT = "4242_000_020_000"
