@@ -17,15 +17,24 @@ from typing import Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 import pytest
+from captures import (
+    CAMERAS,
+    IMAGE_TIMES,
+    arc_poses,
+    corrupt,
+    edit_transforms,
+    numbered_frames,
+    scannet_poses,
+    v1_frame,
+    write_sens,
+    write_sequence,
+    write_transforms,
+    write_v1,
+)
 from conftest import DEMO_CACHE, SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config, train
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.utils import writer
 from PIL import Image
-from test_ordered_capture_dataparser import edit_transforms, known_poses, numbered_frames, write_transforms
-from test_scannet_dataparser import known_poses as scannet_poses
-from test_scannet_dataparser import write_sens
-from test_tum_dataparser import IMAGE_TIMES, write_sequence
-from test_waymo_dataparser import CAMERAS, corrupt, v1_frame, write_v1
 
 from continual_nerf.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.continual_trainer import ContinualTrainerConfig
@@ -81,7 +90,7 @@ def nerfstudio_capture(edit: Callable[[Path], str]) -> Build:
     broken by `edit`, which returns the expected message."""
 
     def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
-        folder = write_transforms(context.scratch / "capture", numbered_frames(known_poses()))
+        folder = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
         message = edit(folder)
         return corpus_run(OrderedCaptureDataParserConfig(data=folder)), message
 
@@ -337,7 +346,7 @@ def test_dataparser_options_fail_at_setup_before_any_data_is_read(parser: DataPa
 def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     """(name, ns-train options then the dataparser and its options, what the last line it prints must start with)."""
     demo = ["continual-demo", "--data", str(DEMO_CACHE), "--num-frames", "12", "--width", "16", "--height", "12"]
-    capture = write_transforms(context.scratch / "capture", numbered_frames(known_poses()))
+    capture = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
     image_line = truncated_image_of_task_2(capture)
     checkpoints = truncated_checkpoint(context)
     tasks = ["--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "2"]
