@@ -1,4 +1,4 @@
-"""What every real-capture dataparser shares: frame selection, pose checks and scene normalisation.
+"""What every real-capture dataparser shares: frame selection, pose checks, image sizes and scene normalisation.
 
 A reader turns its dataset into `CaptureFrames` (metric camera-to-world poses in nerfstudio's OpenGL
 convention, in capture order); `capture_outputs` turns those into nerfstudio's DataparserOutputs.
@@ -17,18 +17,21 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.validated_config import ValidatedConfig
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplied onto an OpenCV camera-to-world matrix (looks down +z, +y down) gives OpenGL's."""
 
 
 @dataclass
-class CaptureDataParserConfig(DataParserConfig):
+class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
     """Options every real-capture dataparser has."""
 
     _target: Type = field(default_factory=lambda: None)
+    """The dataparser a capture format's config builds (this base builds none)."""
     data: Path = Path()
     """Folder (or file) of the capture."""
     frame_stride: int = 1
@@ -42,7 +45,8 @@ class CaptureDataParserConfig(DataParserConfig):
     scene_scale: float = 1.0
     """Extra factor on top of the automatic scale that fits all camera centres into [-1, 1]."""
 
-    def check_options(self) -> None:
+    def validate(self) -> None:
+        super().validate()
         for name in ("frame_stride", "downscale_factor"):
             if getattr(self, name) < 1:
                 raise ContinualConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
@@ -91,6 +95,15 @@ def check_pose(matrix: np.ndarray, source: str) -> None:
         raise DatasetError(f"{source}: pose is not a rigid transform (its 3x3 block is not a rotation)")
 
 
+def image_size(path: Path) -> Tuple[int, int]:
+    """Width and height from the image header (PIL does not decode the pixels for this)."""
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, UnidentifiedImageError) as error:
+        raise DatasetError(f"{path}: cannot read image ({str(error).splitlines()[0]})") from None
+
+
 def select_frames(frames: CaptureFrames, config: CaptureDataParserConfig) -> CaptureFrames:
     """Apply the stride and the frame cap; an empty selection is an error naming the capture."""
     keep = np.arange(0, len(frames), config.frame_stride)
@@ -128,7 +141,6 @@ def fitted_poses(camera_to_worlds: np.ndarray, transform: np.ndarray, scale: flo
 
 def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> DataparserOutputs:
     """Select, orient, centre and scale the frames into nerfstudio's box; DataparserOutputs in capture order."""
-    config.check_options()
     frames = select_frames(frames, config)
     transform, scale = fit_into_box(frames.camera_to_worlds, config.orientation_method, config.scene_scale)
     distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()

@@ -18,16 +18,18 @@ from PIL import Image
 
 from continual_nerf.dataparsers import demo_scene
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.validated_config import ValidatedConfig
 
 SCENE_SCALE = 0.1
 """Metres to scene units: the 20 m room fits nerfstudio's [-1, 1] box."""
 
 
 @dataclass
-class ContinualDemoDataParserConfig(DataParserConfig):
+class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """A camera walking along a textured room, generated from a seed (no download, exact poses)."""
 
     _target: Type = field(default_factory=lambda: ContinualDemoDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/continual-demo")
     """Folder the rendered scene is written to, and reused from when it already holds the same scene."""
     num_frames: int = 120
@@ -41,19 +43,20 @@ class ContinualDemoDataParserConfig(DataParserConfig):
     seed: int = 0
     """Seed of the crate layout and of the wobble of the camera path."""
 
+    def validate(self) -> None:
+        super().validate()
+        for name in ("num_frames", "width", "height"):
+            value = getattr(self, name)
+            if value < 1:
+                raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be at least 1, got {value}")
+        if not 0 < self.fov_degrees < 180:
+            raise ContinualConfigError(f"continual-demo --fov-degrees must be in (0, 180), got {self.fov_degrees}")
+
 
 class ContinualDemoDataParser(DataParser):
     """Renders the demo room with its own ray caster; every split returns the whole trajectory."""
 
     config: ContinualDemoDataParserConfig
-
-    def _validate(self) -> None:
-        for name in ("num_frames", "width", "height"):
-            if getattr(self.config, name) < 1:
-                option = name.replace("_", "-")
-                raise ContinualConfigError(f"continual-demo --{option} must be at least 1, got {getattr(self.config, name)}")
-        if not 0 < self.config.fov_degrees < 180:
-            raise ContinualConfigError(f"continual-demo --fov-degrees must be in (0, 180), got {self.config.fov_degrees}")
 
     def _scene_folder(self) -> Path:
         c = self.config
@@ -82,7 +85,6 @@ class ContinualDemoDataParser(DataParser):
             os.replace(partial, folder)
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self._validate()
         c = self.config
         rng = np.random.default_rng(c.seed)
         crates = demo_scene.make_crates(rng)

@@ -11,10 +11,9 @@ import re
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Mapping, Optional, Tuple, Type, get_args
+from typing import Any, Callable, Dict, List, Literal, Optional, Tuple, Type, get_args
 
 import numpy as np
-from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -26,6 +25,7 @@ from continual_nerf.dataparsers.capture import (
     capture_outputs,
     check_pose,
 )
+from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 Order = Literal["auto", "timestamp", "filename", "file"]
@@ -39,15 +39,6 @@ ORDER_DESCRIPTIONS = {
 
 TIMESTAMP_KEYS = ("timestamp", "time")
 """Per-frame keys of transforms.json read as the capture time; the first one present is used."""
-
-INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-"""transforms.json intrinsics every frame needs, from the frame itself or from the whole file."""
-
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-"""transforms.json distortion keys, in the order of nerfstudio's distortion_params."""
-
-PERSPECTIVE_MODELS = tuple(name for name, kind in CAMERA_MODEL_TO_TYPE.items() if kind == CameraType.PERSPECTIVE)
-"""Camera models the capture base can train on (it builds perspective cameras)."""
 
 COLMAP_PARAMETERS = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -78,8 +69,8 @@ class OrderedCaptureDataParserConfig(CaptureDataParserConfig):
     images_dir: Optional[Path] = None
     """Images of a COLMAP model; default: the `images` folder next to it (<scene>/images for <scene>/sparse/0)."""
 
-    def check_options(self) -> None:
-        super().check_options()
+    def validate(self) -> None:
+        super().validate()
         if self.order not in get_args(Order):
             raise ContinualConfigError(f"--order must be one of {', '.join(get_args(Order))}, got {self.order}")
 
@@ -105,41 +96,6 @@ def existing_image(path: Path, listed_in: Path) -> Path:
     if not path.is_file():
         raise DatasetError(f"{path}: image listed in {listed_in} does not exist")
     return path
-
-
-def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray, np.ndarray]:
-    """Intrinsics and distortion from transforms.json-style keys; only perspective camera models are accepted."""
-    model = values.get("camera_model", "OPENCV")
-    if model not in PERSPECTIVE_MODELS:
-        supported = ", ".join(PERSPECTIVE_MODELS)
-        raise DatasetError(f"{source}: camera model {model} is not supported (perspective only: {supported})")
-    missing = [key for key in INTRINSIC_KEYS if key not in values]
-    if missing:
-        raise DatasetError(f"{source}: {', '.join(missing)} missing (set per frame or once for the whole file)")
-    try:
-        intrinsics = np.array([float(values[key]) for key in INTRINSIC_KEYS])
-        distortion = np.array(
-            values.get("distortion_params") or [values.get(key, 0.0) for key in DISTORTION_KEYS], dtype=np.float64
-        )
-    except (TypeError, ValueError):
-        raise DatasetError(f"{source}: intrinsics and distortion must be numbers") from None
-    if distortion.shape != (len(DISTORTION_KEYS),):
-        raise DatasetError(f"{source}: distortion_params must hold 6 numbers {list(DISTORTION_KEYS)}")
-    return intrinsics, distortion
-
-
-def transforms_pose(value: Any, source: str) -> np.ndarray:
-    """A transforms.json transform_matrix (OpenGL camera-to-world, 4x4 or 3x4) as a checked 4x4 matrix."""
-    try:
-        matrix = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DatasetError(f"{source}: transform_matrix is not a matrix of numbers") from None
-    if matrix.shape not in ((4, 4), (3, 4)):
-        raise DatasetError(f"{source}: transform_matrix must be a 4x4 or 3x4 matrix, got shape {matrix.shape}")
-    camera_to_world = np.eye(4)
-    camera_to_world[:3] = matrix[:3]
-    check_pose(camera_to_world, source)
-    return camera_to_world
 
 
 def read_transforms(path: Path) -> List[ListedFrame]:
@@ -270,11 +226,6 @@ def read_listed_frames(config: OrderedCaptureDataParserConfig) -> Tuple[List[Lis
     )
 
 
-def natural_key(name: str) -> List[Any]:
-    """Sort key comparing digit runs as numbers; re.split alternates text and digits, so types always line up."""
-    return [int(chunk) if position % 2 else chunk for position, chunk in enumerate(re.split(r"(\d+)", name))]
-
-
 def timestamps(frames: List[ListedFrame], source: Path) -> np.ndarray:
     """The frames' timestamps as numbers; a frame without one, or with a non-number, is an error."""
     values = []
@@ -353,7 +304,6 @@ class OrderedCaptureDataParser(DataParser):
     config: OrderedCaptureDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self.config.check_options()
         listed, source = read_listed_frames(self.config)
         permutation = capture_order(listed, self.config.order, source)
         return capture_outputs(stack_frames([listed[index] for index in permutation]), self.config)

@@ -11,12 +11,11 @@ import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, List, Optional, Sequence, Tuple, Type
+from typing import BinaryIO, List, Optional, Sequence, Type
 
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.atomic_files import write_bytes_atomically
 from continual_nerf.dataparsers.capture import (
@@ -25,6 +24,7 @@ from continual_nerf.dataparsers.capture import (
     CaptureFrames,
     capture_outputs,
     check_pose,
+    image_size,
     select_frames,
 )
 from continual_nerf.errors import DatasetError
@@ -42,6 +42,7 @@ class ContinualScanNetDataParserConfig(CaptureDataParserConfig):
     """A ScanNet scene in capture order: SensReader's exported folder or the raw `<scene>.sens` file."""
 
     _target: Type = field(default_factory=lambda: ContinualScanNetDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/scannet/scene0101_00")
     """Exported scene folder (color/, pose/, intrinsic/), a raw `<scene>.sens` file, or a folder holding one."""
     sens_frames_cache: Optional[Path] = None
@@ -112,15 +113,6 @@ def check_intrinsics(intrinsic: np.ndarray, source: str) -> None:
     focal_and_centre = intrinsic[[0, 1, 0, 1], [0, 1, 2, 2]]
     if not (np.isfinite(focal_and_centre).all() and (focal_and_centre > 0).all()):
         raise DatasetError(f"{source}: intrinsics fx, fy, cx, cy must be positive, got {focal_and_centre.tolist()}")
-
-
-def image_size(path: Path) -> Tuple[int, int]:
-    """Width and height from the image header (PIL does not decode the pixels for this)."""
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (OSError, UnidentifiedImageError) as error:
-        raise DatasetError(f"{path}: cannot read image ({str(error).splitlines()[0]})") from None
 
 
 def build_frames(
@@ -304,7 +296,6 @@ class ContinualScanNetDataParser(DataParser):
         return frames
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self.config.check_options()
         source = find_source(self.config.data)
         frames = self._read_sens(source) if source.is_file() else read_exported_folder(source)
         return capture_outputs(frames, self.config)

@@ -33,7 +33,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from continual_nerf.dataparsers.capture import CaptureDataParserConfig, fit_into_box, fitted_poses
-from continual_nerf.dataparsers.ordered_capture_dataparser import natural_key, parse_intrinsics, transforms_pose
+from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
@@ -63,8 +63,8 @@ class StreamDataParserConfig(CaptureDataParserConfig):
     scene_box_bound: float = 1.0
     """Half side of the scene box; cameras that arrive later may leave it, nerfacto's scene contraction covers them."""
 
-    def check_options(self) -> None:
-        super().check_options()
+    def validate(self) -> None:
+        super().validate()
         if self.frames_per_task < 0 or self.frames_per_task == 1:
             raise ContinualConfigError(
                 "--frames-per-task must be 0 (markers only) or at least 2 (a training and a test frame), "
@@ -225,7 +225,6 @@ class StreamDataParser(DataParser):
 
     def __init__(self, config: StreamDataParserConfig) -> None:
         super().__init__(config)
-        config.check_options()
         self.watcher = CaptureWatcher(config.data, config.unreadable_timeout)
         self.tasks: List[List[StreamFrame]] = []
         """Complete tasks, in capture order."""

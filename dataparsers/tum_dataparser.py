@@ -21,8 +21,8 @@ from continual_nerf.dataparsers.capture import (
     CaptureFrames,
     capture_outputs,
     check_pose,
+    image_size,
 )
-from continual_nerf.dataparsers.scannet_dataparser import image_size
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 
@@ -51,6 +51,7 @@ class ContinualTumDataParserConfig(CaptureDataParserConfig):
     """A TUM RGB-D sequence in capture order: rgb.txt images posed from groundtruth.txt by timestamp."""
 
     _target: Type = field(default_factory=lambda: ContinualTumDataParser)
+    """The dataparser this config builds."""
     data: Path = Path("data/tum/rgbd_dataset_freiburg1_desk")
     """Sequence folder (rgb.txt, groundtruth.txt, rgb/); freiburg1/2/3 in its name picks the sensor calibration."""
     association: Literal["nearest", "interpolate"] = "nearest"
@@ -67,6 +68,17 @@ class ContinualTumDataParserConfig(CaptureDataParserConfig):
     """Principal point y in pixels, instead of the sensor's."""
     distortion: Optional[Tuple[float, float, float, float, float]] = None
     """Distortion k1 k2 p1 p2 k3 (OpenCV order, as TUM lists it) instead of the sensor's; zeros if undistorted."""
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.max_time_difference >= 0:
+            raise ContinualConfigError(
+                f"continual-tum --max-time-difference must be >= 0 seconds, got {self.max_time_difference}"
+            )
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ContinualConfigError(f"continual-tum --{name} must be positive, got {value}")
 
 
 @dataclass
@@ -195,18 +207,6 @@ class ContinualTumDataParser(DataParser):
 
     config: ContinualTumDataParserConfig
 
-    def _check_options(self) -> None:
-        c = self.config
-        c.check_options()
-        if not c.max_time_difference >= 0:
-            raise ContinualConfigError(
-                f"continual-tum --max-time-difference must be >= 0 seconds, got {c.max_time_difference}"
-            )
-        for name in ("fx", "fy", "cx", "cy"):
-            value = getattr(c, name)
-            if value is not None and not value > 0:
-                raise ContinualConfigError(f"continual-tum --{name} must be positive, got {value}")
-
     def _calibration(self) -> SensorCalibration:
         """The sensor's calibration from the folder name, with the user's overrides applied."""
         c = self.config
@@ -266,7 +266,6 @@ class ContinualTumDataParser(DataParser):
         return kept, poses
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        self._check_options()
         c = self.config
         if not c.data.is_dir():
             raise DatasetError(f"{c.data}: no such folder")

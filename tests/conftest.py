@@ -7,7 +7,6 @@ from typing import Callable
 
 import pytest
 import torch
-from helpers import DEMO_CACHE, SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config, train  # noqa: F401
 
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 

@@ -1,17 +1,36 @@
-"""Shared test helpers: tiny continual-ngp configurations that train in seconds on a CPU, and how to run them."""
+"""Shared test helpers: tiny continual-ngp configurations that train in seconds on a CPU and how to run them, and
+the captures the tests write, each in its dataset's own layout with known poses (transforms.json and COLMAP models,
+ScanNet exported folder and .sens, TUM RGB-D, Waymo v1 TFRecord and v2 Parquet), and their poses read back.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import io
+import json
 import os
+import struct
 import sys
+import zlib
 from pathlib import Path
-from typing import List, Sequence
+from typing import Dict, List, Optional, Sequence
 
-from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from nerfstudio.data.dataparsers.base_dataparser import (
+    DataParserConfig,
+    DataparserOutputs,
+    transform_poses_to_original_space,
+)
+from nerfstudio.data.utils import colmap_parsing_utils as colmap
+from PIL import Image
 
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.dataparsers import waymo_v2
+from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
 from continual_nerf.method_configs import continual_ngp
 from continual_nerf.recipes import quiet_config, train_like_ns_train
 
@@ -48,7 +67,9 @@ def tiny_config(
     return config
 
 
-def demo_parser(num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0) -> ContinualDemoDataParserConfig:
+def demo_parser(
+    num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0
+) -> ContinualDemoDataParserConfig:
     return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=width, height=height, seed=seed)
 
 
@@ -56,11 +77,20 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
     """`ns-train continual-ngp` with tiny_config's settings (CPU, tensorboard, small hash grid, 256 rays), then
     `options`, then the dataparser subcommand and its options."""
     tiny = {
-        "machine.device-type": "cpu", "vis": "tensorboard", "output-dir": output_dir, "timestamp": timestamp,
-        "steps-per-eval-batch": 10**9, "steps-per-eval-image": 10**9, "logging.local-writer.enable": False,
-        "pipeline.model.num-levels": 8, "pipeline.model.log2-hashmap-size": 15, "pipeline.model.max-res": 128,
-        "pipeline.model.num-nerf-samples-per-ray": 16, "pipeline.model.num-proposal-samples-per-ray": 32,
-        "pipeline.model.eval-num-rays-per-chunk": 4096, "pipeline.datamanager.train-num-rays-per-batch": 256,
+        "machine.device-type": "cpu",
+        "vis": "tensorboard",
+        "output-dir": output_dir,
+        "timestamp": timestamp,
+        "steps-per-eval-batch": 10**9,
+        "steps-per-eval-image": 10**9,
+        "logging.local-writer.enable": False,
+        "pipeline.model.num-levels": 8,
+        "pipeline.model.log2-hashmap-size": 15,
+        "pipeline.model.max-res": 128,
+        "pipeline.model.num-nerf-samples-per-ray": 16,
+        "pipeline.model.num-proposal-samples-per-ray": 32,
+        "pipeline.model.eval-num-rays-per-chunk": 4096,
+        "pipeline.datamanager.train-num-rays-per-batch": 256,
         "pipeline.model.compile": False,
     }
     flags = [item for name, value in tiny.items() for item in (f"--{name}", str(value))]
@@ -70,3 +100,445 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
 def train(config: ContinualTrainerConfig) -> ContinualTrainer:
     """Train `config` in this process as `ns-train` does (seeded with --machine.seed); returns the trainer."""
     return train_like_ns_train(config)
+
+
+WIDTH, HEIGHT = 32, 24
+"""Image size of the transforms.json, COLMAP, ScanNet and TUM captures (each Waymo camera has its own, SIZES)."""
+
+
+def original_poses(outputs: DataparserOutputs) -> np.ndarray:
+    """Undo the dataparser's orientation, centring and scale: metric OpenGL camera-to-world (N, 3, 4)."""
+    poses = transform_poses_to_original_space(
+        outputs.cameras.camera_to_worlds.double(),
+        outputs.dataparser_transform.double(),
+        outputs.dataparser_scale,
+        "opengl",
+    )
+    return poses.numpy()
+
+
+def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula."""
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+# ---- transforms.json and COLMAP (continual-nerfstudio) ----
+
+NUMBERS = [2 * (i + 1) for i in range(10)]
+"""File-name numbers 2..20 in capture order: a string sort would put frame_10 before frame_2."""
+SHUFFLE = [7, 2, 9, 0, 5, 3, 8, 1, 6, 4]
+"""Order in which the generated files list the frames (indices into the capture order)."""
+
+
+def arc_poses(count: int = len(NUMBERS)) -> np.ndarray:
+    """OpenGL camera-to-world matrices on a rising arc, each looking at the origin."""
+    poses = []
+    for i in range(count):
+        angle = 0.4 * i
+        position = np.array([3 * np.cos(angle), 3 * np.sin(angle), 0.5 + 0.1 * i])
+        back = position / np.linalg.norm(position)
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        pose[:3, 3] = position
+        poses.append(pose)
+    return np.stack(poses)
+
+
+def write_images(folder: Path, names: List[str]) -> None:
+    rng = np.random.default_rng(0)
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(rng.integers(0, 255, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / name)
+
+
+def write_transforms(folder: Path, frames: List[Dict], **shared) -> Path:
+    """transforms.json listing `frames` in the SHUFFLE order, with their images."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_images(folder, [frame["file_path"] for frame in frames])
+    listed = [frames[i] for i in SHUFFLE]
+    defaults = {"fl_x": 30.0, "fl_y": 31.0, "cx": 16.0, "cy": 12.0, "w": WIDTH, "h": HEIGHT}
+    (folder / "transforms.json").write_text(json.dumps({**defaults, **shared, "frames": listed}))
+    return folder
+
+
+def numbered_frames(poses: np.ndarray) -> List[Dict]:
+    return [
+        {"file_path": f"images/frame_{number}.png", "transform_matrix": pose.tolist()}
+        for number, pose in zip(NUMBERS, poses)
+    ]
+
+
+def edit_transforms(folder: Path, **frame_changes: Dict) -> Dict:
+    """Update frames of the folder's transforms.json by image number (frame_<number>.png); returns the file's dict."""
+    path = folder / "transforms.json"
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"]:
+        frame.update(frame_changes.get(Path(frame["file_path"]).stem, {}))
+    path.write_text(json.dumps(meta))
+    return meta
+
+
+def colmap_line(image_id: int, camera_to_world: np.ndarray, camera_id: int, name: str) -> str:
+    """An images.txt pose line: OpenCV world-to-camera as COLMAP's scalar-first quaternion and translation."""
+    world_to_camera = np.linalg.inv(camera_to_world @ OPENCV_TO_OPENGL)
+    qvec, tvec = colmap.rotmat2qvec(world_to_camera[:3, :3]), world_to_camera[:3, 3]
+    return " ".join(str(v) for v in [image_id, *qvec, *tvec, camera_id, name])
+
+
+def write_colmap_text(scene: Path, image_lines: Optional[List[str]] = None) -> Path:
+    """<scene>/sparse/0 with a PINHOLE camera (even frames) and an OPENCV camera (odd frames), images shuffled."""
+    model = scene / "sparse" / "0"
+    model.mkdir(parents=True)
+    image_names = [f"{number:06d}.png" for number in NUMBERS]
+    write_images(scene / "images", image_names)
+    poses = arc_poses()
+    (model / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n"
+        f"1 PINHOLE {WIDTH} {HEIGHT} 30 31 16 12\n"
+        f"2 OPENCV {WIDTH} {HEIGHT} 28 29 15.5 11.5 0.1 -0.05 0.001 0.002\n"
+    )
+    if image_lines is None:
+        image_lines = [colmap_line(i + 1, poses[i], 1 + i % 2, image_names[i]) for i in SHUFFLE]
+    # every image line is followed by its (here empty) line of 2D points
+    (model / "images.txt").write_text("# Image list\n" + "".join(f"{line}\n\n" for line in image_lines))
+    (model / "points3D.txt").write_text("# 3D point list\n")
+    return model
+
+
+# ---- ScanNet: SensReader's exported folder and the raw .sens file ----
+
+SCANNET_INTRINSIC = np.array([[28.0, 0, 15.5, 0], [0, 29.0, 11.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+"""Colour intrinsics of the generated scenes, as intrinsic_color.txt and the .sens header hold them."""
+
+
+def scannet_poses(count: int, seed: int = 0) -> np.ndarray:
+    """OpenCV camera-to-world poses along a path, each turned differently (metres)."""
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    for i in range(count):
+        poses[i, :3, :3] = rotation(rng.normal(size=3), rng.uniform(0.2, 2.5))
+        poses[i, :3, 3] = [0.4 * i + 1.0, np.sin(i), 1.5 + 0.1 * i]
+    return poses
+
+
+def jpeg_bytes(index: int) -> bytes:
+    rng = np.random.default_rng(index)
+    pixels = rng.integers(0, 255, size=(HEIGHT, WIDTH, 3), dtype=np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="JPEG")
+    return buffer.getvalue()
+
+
+def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
+    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt."""
+    for sub in ("color", "pose", "intrinsic"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", SCANNET_INTRINSIC)
+    for i, pose in enumerate(poses):
+        (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
+        np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
+    return folder
+
+
+def write_sens(
+    path: Path,
+    poses: np.ndarray,
+    lost: tuple = (),
+    color_compression: int = 2,
+    depth_compression: int = 1,
+    sparse_depth_bytes: Optional[int] = None,
+) -> Dict[int, bytes]:
+    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
+
+    `sparse_depth_bytes` gives frame 0 a depth block of that size left as a hole (a sparse file), so a
+    reader that loads the depth bytes instead of seeking past them shows in its memory use.
+    """
+    depth_w, depth_h = 16, 12
+    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()
+    depth = zlib.compress(depth) if depth_compression == 1 else depth
+    name = b"StructureSensor"
+    colours = {i: jpeg_bytes(i) for i in range(len(poses))}
+    with path.open("wb") as sens:
+        sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
+        for matrix in (SCANNET_INTRINSIC, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
+            sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
+        sens.write(struct.pack("<ii", color_compression, depth_compression))
+        sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))
+        sens.write(struct.pack("<f", 1000.0) + struct.pack("<Q", len(poses)))
+        for i, pose in enumerate(poses):
+            matrix = np.full((4, 4), -np.inf) if i in lost else pose
+            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == 0) else len(depth)
+            sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
+            sens.write(struct.pack("<QQ", 1000 * i, 1000 * i + 3) + struct.pack("<QQ", len(colours[i]), depth_size))
+            sens.write(colours[i])
+            if depth_size == len(depth):
+                sens.write(depth)
+            else:
+                sens.seek(depth_size, 1)
+    return colours
+
+
+# ---- TUM RGB-D: rgb.txt, groundtruth.txt and rgb/ ----
+
+START = 1305031102.0
+"""Timestamps are seconds since the Unix epoch, as in the dataset."""
+AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+"""The camera turns about this axis at a constant rate."""
+IMAGE_TIMES = START + 0.0047 + np.arange(12) / 30
+"""30 Hz images; the first three come before the ground truth starts."""
+POSE_TIMES = START + 0.1 + np.arange(51) / 100
+"""100 Hz ground truth from 0.1 s to 0.6 s."""
+
+
+def angle_at(t: float) -> float:
+    return 0.3 + 2.0 * (t - START)
+
+
+def pose_at(t: float) -> np.ndarray:
+    """OpenCV camera-to-world at time t: constant velocity, constant turn rate about a fixed axis."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation(AXIS, angle_at(t))
+    pose[:3, 3] = [1.0 + 2.0 * (t - START), -0.5 + 1.0 * (t - START), 1.2 - 0.8 * (t - START)]
+    return pose
+
+
+def groundtruth_line(t: float, scale: float = 1.0) -> str:
+    """`timestamp tx ty tz qx qy qz qw`, scalar last; `scale` makes the quaternion non-unit."""
+    half = angle_at(t) / 2
+    quaternion = scale * np.array([*(AXIS * np.sin(half)), np.cos(half)])
+    return " ".join(f"{v:.9f}" for v in [t, *pose_at(t)[:3, 3], *quaternion])
+
+
+def write_sequence(
+    folder: Path,
+    image_times: np.ndarray = IMAGE_TIMES,
+    pose_times: np.ndarray = POSE_TIMES,
+    groundtruth_lines: Optional[List[str]] = None,
+) -> Path:
+    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each."""
+    (folder / "rgb").mkdir(parents=True)
+    rgb_lines = ["# color images", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
+    for i, t in enumerate(image_times):
+        pixels = np.random.default_rng(i).integers(0, 255, size=(HEIGHT, WIDTH, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(folder / "rgb" / f"{t:.6f}.png")
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    header = ["# ground truth trajectory", "# file: 'rgbd_dataset.bag'", "# timestamp tx ty tz qx qy qz qw"]
+    body = groundtruth_lines if groundtruth_lines is not None else [groundtruth_line(t) for t in pose_times]
+    (folder / "groundtruth.txt").write_text("\n".join(header + body) + "\n")
+    return folder
+
+
+# ---- Waymo: a segment of known geometry, as v2 Parquet files or a v1 .tfrecord ----
+
+SEGMENT = "4242_000_020_000"
+CAMERAS = list(CAMERA_IDS)
+WORLD_ORIGIN = np.array([-25211.0, 42391.0, -161.0])
+"""Where the generated segments drive: world coordinates as large as Waymo's."""
+NUM_TIMES = 6
+TIMES = [1_553_735_853_000_000 + 100_000 * i for i in range(NUM_TIMES)]
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rigid(rotation: np.ndarray, translation) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = rotation, translation
+    return matrix
+
+
+def vehicle_pose(i: int) -> np.ndarray:
+    """The vehicle drives forward while it turns left."""
+    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i, 0.4 * i, 0.01 * i])
+
+
+def image_pose(i: int, camera: str) -> np.ndarray:
+    """Each camera's own pose: the vehicle a few cm further on (rolling shutter), different per camera."""
+    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i + 0.01 * CAMERA_IDS[camera], 0.4 * i, 0.01 * i])
+
+
+EXTRINSICS = {
+    "FRONT": rigid(rotation_z(0.0), [1.5, 0.0, 2.1]),
+    "FRONT_LEFT": rigid(rotation_z(np.pi / 4), [1.5, 0.1, 2.1]),
+    "FRONT_RIGHT": rigid(rotation_z(-np.pi / 4), [1.5, -0.1, 2.1]),
+    "SIDE_LEFT": rigid(rotation_z(np.pi / 2), [1.4, 0.1, 2.1]),
+    "SIDE_RIGHT": rigid(rotation_z(-np.pi / 2), [1.4, -0.1, 2.1]),
+}
+SIZES = {
+    "FRONT": (16, 12),
+    "FRONT_LEFT": (16, 12),
+    "FRONT_RIGHT": (16, 12),
+    "SIDE_LEFT": (16, 8),
+    "SIDE_RIGHT": (16, 8),
+}
+
+
+def intrinsic(camera: str) -> List[float]:
+    """[f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3], different per camera."""
+    width, height = SIZES[camera]
+    n = CAMERA_IDS[camera]
+    return [20.0 + n, 21.0 + n, width / 2 + 0.1 * n, height / 2, 0.01 * n, -0.002, 0.001, -0.001, 0.0005 * n]
+
+
+def jpeg(camera: str, i: int) -> bytes:
+    """A tiny image whose colour encodes camera and time."""
+    buffer = io.BytesIO()
+    Image.new("RGB", SIZES[camera], (40 * CAMERA_IDS[camera], 30 * i, 128)).save(buffer, format="JPEG")
+    return buffer.getvalue()
+
+
+def fixture_pose(i: int, camera: str) -> np.ndarray:
+    """Both fixtures give every image its own pose but SIDE_LEFT's at time 1, which takes the frame's."""
+    return vehicle_pose(i) if (i, camera) == (1, "SIDE_LEFT") else image_pose(i, camera)
+
+
+# v2: Parquet with Waymo's column names
+
+
+def transform_column(matrices: List[Optional[np.ndarray]], fixed_size: bool = True) -> pa.Array:
+    """16 doubles per row; Waymo writes fixed-size lists, which pyarrow cannot read back with nulls in them."""
+    values = [None if m is None else m.ravel().tolist() for m in matrices]
+    return pa.array(values, type=pa.list_(pa.float64(), 16 if fixed_size else -1))
+
+
+def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_poses: bool = True) -> Path:
+    """A v2 root of one segment: camera images shuffled over several row groups, one image without its own pose."""
+    rows = [(i, camera) for i in range(NUM_TIMES) for camera in CAMERAS]
+    rows = [rows[k] for k in np.random.default_rng(0).permutation(len(rows))]
+    own_pose = [image_poses and (i, camera) != (1, "SIDE_LEFT") for i, camera in rows]
+    images = {
+        "key.segment_context_name": pa.array([SEGMENT] * len(rows)),
+        waymo_v2.TIMESTAMP: pa.array([TIMES[i] for i, _ in rows], type=pa.int64()),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for _, camera in rows], type=pa.int8()),
+        waymo_v2.IMAGE: pa.array([jpeg(camera, i) for i, camera in rows], type=pa.binary()),
+        waymo_v2.IMAGE_POSE: transform_column(
+            [image_pose(i, c) if own else None for (i, c), own in zip(rows, own_pose)], False
+        ),
+        "[CameraImageComponent].pose_timestamp": pa.array([TIMES[i] / 1e6 for i, _ in rows]),
+    }
+    calibration = {
+        "key.segment_context_name": pa.array([SEGMENT] * len(CAMERAS)),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in CAMERAS], type=pa.int8()),
+        **{name: pa.array([intrinsic(camera)[k] for camera in CAMERAS]) for k, name in enumerate(waymo_v2.INTRINSIC)},
+        waymo_v2.EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in CAMERAS]),
+        waymo_v2.WIDTH: pa.array([SIZES[camera][0] for camera in CAMERAS], type=pa.int32()),
+        waymo_v2.HEIGHT: pa.array([SIZES[camera][1] for camera in CAMERAS], type=pa.int32()),
+        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(CAMERAS), type=pa.int8()),
+    }
+    poses = {
+        "key.segment_context_name": pa.array([SEGMENT] * NUM_TIMES),
+        waymo_v2.TIMESTAMP: pa.array(TIMES[::-1], type=pa.int64()),
+        waymo_v2.VEHICLE_POSE: transform_column([vehicle_pose(i) for i in reversed(range(NUM_TIMES))]),
+    }
+    for component, columns in (("camera_image", images), ("camera_calibration", calibration), ("vehicle_pose", poses)):
+        if not image_poses and component == "camera_image":
+            del columns[waymo_v2.IMAGE_POSE]
+        columns.pop((skip_columns or {}).get(component, ""), None)
+        (root / component).mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.table(columns), root / component / f"{SEGMENT}.parquet", row_group_size=7)
+    return root
+
+
+# v1: TFRecord framing and protobuf bytes written by hand
+
+
+def reference_crc32c(data: bytes) -> int:
+    """Bit by bit, straight from the definition (reflected Castagnoli polynomial)."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def reference_masked(data: bytes) -> int:
+    crc = reference_crc32c(data)
+    return (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF
+
+
+def varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        out.append(value & 0x7F | (0x80 if value > 0x7F else 0))
+        value >>= 7
+        if not value:
+            return bytes(out)
+
+
+def field(number: int, payload) -> bytes:
+    """A varint field for an int, a length-delimited one for bytes."""
+    if isinstance(payload, int):
+        return varint(number << 3) + varint(payload)
+    return varint(number << 3 | 2) + varint(len(payload)) + payload
+
+
+def doubles(number: int, values, packed: bool) -> bytes:
+    values = [float(v) for v in values]
+    if packed:
+        return field(number, struct.pack(f"<{len(values)}d", *values))
+    return b"".join(varint(number << 3 | 1) + struct.pack("<d", v) for v in values)
+
+
+def transform(matrix: np.ndarray) -> bytes:
+    return doubles(1, matrix.ravel(), packed=True)
+
+
+def v1_frame(i: int, cameras: List[str]) -> bytes:
+    """A Frame: context with calibrations (intrinsics not packed, as in real files), pose, images, unknown fields."""
+    calibrations = b"".join(
+        field(
+            2,
+            field(1, CAMERA_IDS[c])
+            + doubles(2, intrinsic(c), packed=False)
+            + field(3, transform(EXTRINSICS[c]))
+            + field(4, SIZES[c][0])
+            + field(5, SIZES[c][1])
+            + field(6, 2),
+        )
+        for c in cameras
+    )
+    images = b"".join(
+        field(
+            4,
+            field(1, CAMERA_IDS[c])
+            + field(2, jpeg(c, i))
+            + (b"" if (i, c) == (1, "SIDE_LEFT") else field(3, transform(image_pose(i, c))))
+            + doubles(5, [TIMES[i] / 1e6], packed=False),
+        )
+        for c in reversed(cameras)
+    )
+    lasers = field(5, field(1, 1) + field(2, bytes(300)))
+    return (
+        field(1, field(1, SEGMENT.encode()) + calibrations)
+        + field(2, TIMES[i])
+        + field(3, transform(vehicle_pose(i)))
+        + images
+        + lasers
+    )
+
+
+def tfrecord(records: List[bytes]) -> bytes:
+    out = b""
+    for data in records:
+        length = struct.pack("<Q", len(data))
+        out += length + struct.pack("<I", reference_masked(length)) + data + struct.pack("<I", reference_masked(data))
+    return out
+
+
+def write_v1(path: Path, times: Sequence[int] = range(NUM_TIMES)) -> Path:
+    path.write_bytes(tfrecord([v1_frame(i, CAMERAS) for i in times]))
+    return path
+
+
+def corrupt(path: Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))

@@ -17,22 +17,39 @@ from typing import Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 import pytest
-from conftest import DEMO_CACHE, SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config, train
+from helpers import (
+    CAMERAS,
+    DEMO_CACHE,
+    IMAGE_TIMES,
+    SUBPROCESS_ENV,
+    arc_poses,
+    corrupt,
+    demo_parser,
+    edit_transforms,
+    ns_train_command,
+    numbered_frames,
+    scannet_poses,
+    tiny_config,
+    train,
+    v1_frame,
+    write_sens,
+    write_sequence,
+    write_transforms,
+    write_v1,
+)
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.utils import writer
 from PIL import Image
-from test_ordered_capture_dataparser import edit_transforms, known_poses, numbered_frames, write_transforms
-from test_scannet_dataparser import known_poses as scannet_poses
-from test_scannet_dataparser import write_sens
-from test_tum_dataparser import IMAGE_TIMES, write_sequence
-from test_waymo_dataparser import CAMERAS, corrupt, v1_frame, write_v1
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
+from continual_nerf.errors import ContinualConfigError
 
 
 @dataclass
@@ -78,7 +95,7 @@ def nerfstudio_capture(edit: Callable[[Path], str]) -> Build:
     broken by `edit`, which returns the expected message."""
 
     def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
-        folder = write_transforms(context.scratch / "capture", numbered_frames(known_poses()))
+        folder = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
         message = edit(folder)
         return corpus_run(OrderedCaptureDataParserConfig(data=folder)), message
 
@@ -300,13 +317,41 @@ def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInp
         assert not results.exists() and not list(config.get_base_dir().rglob("*.ckpt")), "nothing trained"
 
 
+# ---- dataparser options, checked when the parser is set up ----
+
+PARSER_OPTIONS = [
+    (ContinualDemoDataParserConfig(num_frames=0), "continual-demo --num-frames must be at least 1, got 0"),
+    (ContinualDemoDataParserConfig(fov_degrees=180.0), "continual-demo --fov-degrees must be in (0, 180), got 180.0"),
+    (
+        OrderedCaptureDataParserConfig(order="random"),
+        "--order must be one of auto, timestamp, filename, file, got random",
+    ),
+    (ContinualScanNetDataParserConfig(downscale_factor=0), "--downscale-factor must be at least 1, got 0"),
+    (ContinualTumDataParserConfig(max_frames=0), "--max-frames must be at least 1, got 0"),
+    (ContinualTumDataParserConfig(cx=-1.0), "continual-tum --cx must be positive, got -1.0"),
+    (WaymoDataParserConfig(cameras=("FRONT", "FRONT")), "--cameras names a camera twice: FRONT FRONT"),
+    (StreamDataParserConfig(poll_seconds=0.0), "--poll-seconds must be positive, got 0.0"),
+    (
+        StreamDataParserConfig(normalization="file"),
+        "--normalization file needs --transform-file (a dataparser_transforms.json)",
+    ),
+]
+
+
+@pytest.mark.parametrize("parser, message", PARSER_OPTIONS, ids=[type(p).__name__ for p, _ in PARSER_OPTIONS])
+def test_dataparser_options_fail_at_setup_before_any_data_is_read(parser: DataParserConfig, message: str):
+    with pytest.raises(ContinualConfigError) as raised:
+        parser.setup()  # the default data paths do not exist: reading them would fail differently
+    assert str(raised.value) == message
+
+
 # ---- through the real ns-train ----
 
 
 def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     """(name, ns-train options then the dataparser and its options, what the last line it prints must start with)."""
     demo = ["continual-demo", "--data", str(DEMO_CACHE), "--num-frames", "12", "--width", "16", "--height", "12"]
-    capture = write_transforms(context.scratch / "capture", numbered_frames(known_poses()))
+    capture = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
     image_line = truncated_image_of_task_2(capture)
     checkpoints = truncated_checkpoint(context)
     tasks = ["--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "2"]

@@ -8,12 +8,13 @@ from helpers import demo_parser, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
+from continual_nerf.baselines.ewc import EWCPenalty, estimate_fisher
+from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.baselines.ewc import EWCPenalty, estimate_fisher
 from continual_nerf.experiments.plan import PAPER_TABLE1, continual_methods
-from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig
 from continual_nerf.recipes import quiet_config
+
 
 def tiny_method(
     method: str, output_dir: Path, num_tasks: int = 2, iterations_per_task: int = 3

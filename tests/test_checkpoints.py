@@ -12,8 +12,8 @@ import torch
 from helpers import demo_parser, tiny_config
 from nerfstudio.scripts.train import train_loop
 
-from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.atomic_files import write_atomically, write_text_atomically
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 
 

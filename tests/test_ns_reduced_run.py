@@ -13,9 +13,9 @@ from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.experiments.plan import continual_methods
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
-from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 
 METHODS = sorted(continual_methods())
 

@@ -4,74 +4,34 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import List
 
 import numpy as np
 import pytest
-from conftest import tiny_config, train
+from helpers import (
+    HEIGHT,
+    NUMBERS,
+    SHUFFLE,
+    WIDTH,
+    arc_poses,
+    edit_transforms,
+    numbered_frames,
+    original_poses,
+    tiny_config,
+    train,
+    write_colmap_text,
+    write_transforms,
+)
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
-from PIL import Image
 
 from continual_nerf.dataparsers import ordered_capture_dataparser as parser_module
-from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
-
-WIDTH, HEIGHT = 32, 24
-NUMBERS = [2 * (i + 1) for i in range(10)]
-"""File-name numbers 2..20 in capture order: a string sort would put frame_10 before frame_2."""
-SHUFFLE = [7, 2, 9, 0, 5, 3, 8, 1, 6, 4]
-"""Order in which the generated files list the frames (indices into the capture order)."""
-
-
-def known_poses(count: int = len(NUMBERS)) -> np.ndarray:
-    """OpenGL camera-to-world matrices on a rising arc, each looking at the origin."""
-    poses = []
-    for i in range(count):
-        angle = 0.4 * i
-        position = np.array([3 * np.cos(angle), 3 * np.sin(angle), 0.5 + 0.1 * i])
-        back = position / np.linalg.norm(position)
-        right = np.cross([0.0, 0.0, 1.0], back)
-        right /= np.linalg.norm(right)
-        pose = np.eye(4)
-        pose[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
-        pose[:3, 3] = position
-        poses.append(pose)
-    return np.stack(poses)
-
-
-def write_images(folder: Path, names: List[str]) -> None:
-    rng = np.random.default_rng(0)
-    for name in names:
-        (folder / name).parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(rng.integers(0, 255, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / name)
-
-
-def write_transforms(folder: Path, frames: List[Dict], **shared) -> Path:
-    """transforms.json listing `frames` in the SHUFFLE order, with their images."""
-    folder.mkdir(parents=True, exist_ok=True)
-    write_images(folder, [frame["file_path"] for frame in frames])
-    listed = [frames[i] for i in SHUFFLE]
-    defaults = {"fl_x": 30.0, "fl_y": 31.0, "cx": 16.0, "cy": 12.0, "w": WIDTH, "h": HEIGHT}
-    (folder / "transforms.json").write_text(json.dumps({**defaults, **shared, "frames": listed}))
-    return folder
-
-
-def numbered_frames(poses: np.ndarray) -> List[Dict]:
-    return [
-        {"file_path": f"images/frame_{number}.png", "transform_matrix": pose.tolist()}
-        for number, pose in zip(NUMBERS, poses)
-    ]
 
 
 def parse(data: Path, **options) -> DataparserOutputs:
     return OrderedCaptureDataParserConfig(data=data, **options).setup().get_dataparser_outputs("train")
-
-
-def original_poses(outputs: DataparserOutputs) -> np.ndarray:
-    """Undo the dataparser's orientation, centring and scale: the poses as the capture wrote them (OpenGL)."""
-    return outputs.transform_poses_to_original_space(outputs.cameras.camera_to_worlds, "opengl").numpy()
 
 
 def names(outputs: DataparserOutputs) -> List[str]:
@@ -93,13 +53,13 @@ def logged(monkeypatch) -> List[str]:
 
 @pytest.fixture
 def numbered(tmp_path) -> Path:
-    return write_transforms(tmp_path / "numbered", numbered_frames(known_poses()))
+    return write_transforms(tmp_path / "numbered", numbered_frames(arc_poses()))
 
 
 def test_transforms_json_is_ordered_by_numbers_in_file_names(numbered, logged):
     outputs = parse(numbered)
     assert names(outputs) == [f"frame_{number}.png" for number in NUMBERS]
-    assert np.allclose(original_poses(outputs), known_poses()[:, :3], atol=1e-4)
+    assert np.allclose(original_poses(outputs), arc_poses()[:, :3], atol=1e-4)
     cameras = outputs.cameras
     assert cameras.fx.flatten().tolist() == [30.0] * 10 and cameras.fy.flatten().tolist() == [31.0] * 10
     assert cameras.cx.flatten().tolist() == [16.0] * 10 and cameras.cy.flatten().tolist() == [12.0] * 10
@@ -113,7 +73,7 @@ def test_file_order_is_kept_when_forced_or_when_names_have_no_numbers(tmp_path, 
     assert names(parse(numbered, order="file")) == [f"frame_{NUMBERS[i]}.png" for i in SHUFFLE]
     assert "order the file lists" in logged[-1] and "auto" not in logged[-1]
     letters = "abcdefghij"
-    frames = numbered_frames(known_poses())
+    frames = numbered_frames(arc_poses())
     lettered = [dict(frame, file_path=f"images/{letter}.png") for letter, frame in zip(letters, frames)]
     outputs = parse(write_transforms(tmp_path / "lettered", lettered))
     assert names(outputs) == [f"{letters[i]}.png" for i in SHUFFLE]
@@ -123,7 +83,7 @@ def test_file_order_is_kept_when_forced_or_when_names_have_no_numbers(tmp_path, 
 @pytest.mark.parametrize("key", ["time", "timestamp"])
 def test_timestamps_order_the_capture_and_per_frame_intrinsics_are_read(tmp_path, key, logged):
     # timestamps run against the file-name numbers, so only a timestamp order puts the poses back
-    poses = known_poses()
+    poses = arc_poses()
     frames = numbered_frames(poses[::-1])
     for i, frame in enumerate(frames):
         frame.update({key: 1305031102.5 - 0.033 * i, "fl_x": 20.0 + i, "k1": 0.01 * i, "p2": 0.002})
@@ -140,39 +100,12 @@ def test_timestamps_order_the_capture_and_per_frame_intrinsics_are_read(tmp_path
     assert "natural sort" in logged[-1] and "auto" not in logged[-1]
 
 
-def colmap_line(image_id: int, camera_to_world: np.ndarray, camera_id: int, name: str) -> str:
-    """An images.txt pose line: OpenCV world-to-camera as COLMAP's scalar-first quaternion and translation."""
-    world_to_camera = np.linalg.inv(camera_to_world @ OPENCV_TO_OPENGL)
-    qvec, tvec = colmap.rotmat2qvec(world_to_camera[:3, :3]), world_to_camera[:3, 3]
-    return " ".join(str(v) for v in [image_id, *qvec, *tvec, camera_id, name])
-
-
-def write_colmap_text(scene: Path, image_lines: Optional[List[str]] = None) -> Path:
-    """<scene>/sparse/0 with a PINHOLE camera (even frames) and an OPENCV camera (odd frames), images shuffled."""
-    model = scene / "sparse" / "0"
-    model.mkdir(parents=True)
-    image_names = [f"{number:06d}.png" for number in NUMBERS]
-    write_images(scene / "images", image_names)
-    poses = known_poses()
-    (model / "cameras.txt").write_text(
-        "# Camera list with one line of data per camera:\n"
-        f"1 PINHOLE {WIDTH} {HEIGHT} 30 31 16 12\n"
-        f"2 OPENCV {WIDTH} {HEIGHT} 28 29 15.5 11.5 0.1 -0.05 0.001 0.002\n"
-    )
-    if image_lines is None:
-        image_lines = [colmap_line(i + 1, poses[i], 1 + i % 2, image_names[i]) for i in SHUFFLE]
-    # every image line is followed by its (here empty) line of 2D points
-    (model / "images.txt").write_text("# Image list\n" + "".join(f"{line}\n\n" for line in image_lines))
-    (model / "points3D.txt").write_text("# 3D point list\n")
-    return model
-
-
 def test_colmap_text_model_recovers_order_poses_and_intrinsics(tmp_path, logged):
     model = write_colmap_text(tmp_path / "scene")
     outputs = parse(model)
     assert names(outputs) == [f"{number:06d}.png" for number in NUMBERS]
     assert outputs.image_filenames[0] == tmp_path / "scene" / "images" / "000002.png"
-    assert np.allclose(original_poses(outputs), known_poses()[:, :3], atol=1e-4)
+    assert np.allclose(original_poses(outputs), arc_poses()[:, :3], atol=1e-4)
     cameras = outputs.cameras
     pinhole, opencv = slice(0, None, 2), slice(1, None, 2)
     assert cameras.fx[pinhole].flatten().tolist() == [30.0] * 5 and cameras.fx[opencv].flatten().tolist() == [28.0] * 5
@@ -202,16 +135,6 @@ def error_of(data: Path, error: type = DatasetError, **options) -> str:
     message = str(raised.value)
     assert "\n" not in message
     return message
-
-
-def edit_transforms(folder: Path, **frame_changes: Dict) -> Dict:
-    """Update frames of the folder's transforms.json by image number (frame_<number>.png); returns the file's dict."""
-    path = folder / "transforms.json"
-    meta = json.loads(path.read_text())
-    for frame in meta["frames"]:
-        frame.update(frame_changes.get(Path(frame["file_path"]).stem, {}))
-    path.write_text(json.dumps(meta))
-    return meta
 
 
 def test_missing_folder_and_folder_without_a_capture(tmp_path):

@@ -19,11 +19,11 @@ from PIL import Image
 
 from continual_nerf.bench.memory import train_recording_memory
 from continual_nerf.compilation import CompiledForward, warm_up
-from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
+from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.recipes import small_model
 
 SMALL_MODEL = small_model(ContinualNGPModelConfig(replay_sample_fraction=1.0))

@@ -2,99 +2,21 @@
 
 from __future__ import annotations
 
-import io
 import json
 import struct
 import tracemalloc
-import zlib
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import List
 
 import numpy as np
 import pytest
-from conftest import original_poses, tiny_config, train
+from helpers import HEIGHT, WIDTH, original_poses, scannet_poses, tiny_config, train, write_exported, write_sens
 from PIL import Image
 
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
-WIDTH, HEIGHT = 32, 24
-INTRINSIC = np.array([[28.0, 0, 15.5, 0], [0, 29.0, 11.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues' formula."""
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def known_poses(count: int, seed: int = 0) -> np.ndarray:
-    """OpenCV camera-to-world poses along a path, each turned differently (metres)."""
-    rng = np.random.default_rng(seed)
-    poses = np.tile(np.eye(4), (count, 1, 1))
-    for i in range(count):
-        poses[i, :3, :3] = rotation(rng.normal(size=3), rng.uniform(0.2, 2.5))
-        poses[i, :3, 3] = [0.4 * i + 1.0, np.sin(i), 1.5 + 0.1 * i]
-    return poses
-
-
-def jpeg_bytes(index: int) -> bytes:
-    rng = np.random.default_rng(index)
-    pixels = rng.integers(0, 255, size=(HEIGHT, WIDTH, 3), dtype=np.uint8)
-    buffer = io.BytesIO()
-    Image.fromarray(pixels).save(buffer, format="JPEG")
-    return buffer.getvalue()
-
-
-def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
-    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt."""
-    for sub in ("color", "pose", "intrinsic"):
-        (folder / sub).mkdir(parents=True, exist_ok=True)
-    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", INTRINSIC)
-    for i, pose in enumerate(poses):
-        (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
-        np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
-    return folder
-
-
-def write_sens(
-    path: Path,
-    poses: np.ndarray,
-    lost: tuple = (),
-    color_compression: int = 2,
-    depth_compression: int = 1,
-    sparse_depth_bytes: Optional[int] = None,
-) -> Dict[int, bytes]:
-    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
-
-    `sparse_depth_bytes` gives frame 0 a depth block of that size left as a hole (a sparse file), so a
-    reader that loads the depth bytes instead of seeking past them shows in its memory use.
-    """
-    depth_w, depth_h = 16, 12
-    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()
-    depth = zlib.compress(depth) if depth_compression == 1 else depth
-    name = b"StructureSensor"
-    colours = {i: jpeg_bytes(i) for i in range(len(poses))}
-    with path.open("wb") as sens:
-        sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
-        for matrix in (INTRINSIC, np.eye(4), INTRINSIC * 0.5, np.eye(4)):
-            sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
-        sens.write(struct.pack("<ii", color_compression, depth_compression))
-        sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))
-        sens.write(struct.pack("<f", 1000.0) + struct.pack("<Q", len(poses)))
-        for i, pose in enumerate(poses):
-            matrix = np.full((4, 4), -np.inf) if i in lost else pose
-            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == 0) else len(depth)
-            sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
-            sens.write(struct.pack("<QQ", 1000 * i, 1000 * i + 3) + struct.pack("<QQ", len(colours[i]), depth_size))
-            sens.write(colours[i])
-            if depth_size == len(depth):
-                sens.write(depth)
-            else:
-                sens.seek(depth_size, 1)
-    return colours
 
 
 def parse(data: Path, **options):
@@ -118,7 +40,7 @@ def assert_intrinsics(outputs) -> None:
 
 
 def test_exported_folder_poses_intrinsics_numeric_order_and_lost_frames(tmp_path, capsys):
-    poses = known_poses(12)
+    poses = scannet_poses(12)
     folder = write_exported(tmp_path / "scene0101_00", poses, lost=(3, 7, 8))
     outputs = parse(folder)
     kept = [0, 1, 2, 4, 5, 6, 9, 10, 11]
@@ -131,7 +53,7 @@ def test_exported_folder_poses_intrinsics_numeric_order_and_lost_frames(tmp_path
 
 
 def test_width_and_height_come_from_the_image_header(tmp_path):
-    folder = write_exported(tmp_path / "scene", known_poses(3))
+    folder = write_exported(tmp_path / "scene", scannet_poses(3))
     for i in range(3):
         Image.new("RGB", (1296, 968)).save(folder / "color" / f"{i}.jpg")
     cameras = parse(folder).cameras
@@ -151,7 +73,7 @@ def test_poses_point_the_camera_along_opencv_z(tmp_path):
 
 @pytest.mark.parametrize("point_at", ["file", "folder"])
 def test_sens_file_matches_the_written_poses_intrinsics_and_images(tmp_path, capsys, point_at):
-    poses = known_poses(12, seed=1)
+    poses = scannet_poses(12, seed=1)
     sens = tmp_path / "scene0146_00" / "scene0146_00.sens"
     sens.parent.mkdir()
     colours = write_sens(sens, poses, lost=(5,))
@@ -167,7 +89,7 @@ def test_sens_file_matches_the_written_poses_intrinsics_and_images(tmp_path, cap
 
 def test_sens_raw_depth_and_a_chosen_cache_folder(tmp_path):
     sens = tmp_path / "scene.sens"
-    write_sens(sens, known_poses(4), depth_compression=0)
+    write_sens(sens, scannet_poses(4), depth_compression=0)
     cache = tmp_path / "elsewhere" / "frames"
     outputs = parse(sens, sens_frames_cache=cache)
     assert outputs.image_filenames == [cache / f"{i}.jpg" for i in range(4)]
@@ -176,7 +98,7 @@ def test_sens_raw_depth_and_a_chosen_cache_folder(tmp_path):
 
 def test_sens_extracts_only_the_selected_frames_once_and_repairs_incomplete_ones(tmp_path):
     sens = tmp_path / "scene.sens"
-    colours = write_sens(sens, known_poses(12))
+    colours = write_sens(sens, scannet_poses(12))
     cache = tmp_path / "scene_sens_frames"
     outputs = parse(sens, frame_stride=3, max_frames=3)
     assert [p.name for p in outputs.image_filenames] == ["0.jpg", "3.jpg", "6.jpg"]
@@ -192,7 +114,7 @@ def test_sens_extracts_only_the_selected_frames_once_and_repairs_incomplete_ones
 def test_sens_is_read_streaming_not_whole(tmp_path):
     sens = tmp_path / "big.sens"
     gigabyte = 1 << 30
-    write_sens(sens, known_poses(3), sparse_depth_bytes=gigabyte)
+    write_sens(sens, scannet_poses(3), sparse_depth_bytes=gigabyte)
     if sens.stat().st_blocks * 512 > 64 << 20:
         pytest.skip("this filesystem has no sparse files")
     tracemalloc.start()
@@ -221,7 +143,7 @@ HEADER_SIZE = 4 + 8 + len(b"StructureSensor") + 4 * 64 + 8 + 16 + 4 + 8
 )
 def test_truncated_sens_file_is_named(tmp_path, cut_to, message):
     sens = tmp_path / "scene.sens"
-    write_sens(sens, known_poses(4))
+    write_sens(sens, scannet_poses(4))
     _truncate(sens, cut_to if cut_to > 0 else sens.stat().st_size + cut_to)
     with pytest.raises(DatasetError, match=f"^{sens}: {message}$"):
         parse(sens)
@@ -230,14 +152,14 @@ def test_truncated_sens_file_is_named(tmp_path, cut_to, message):
 @pytest.mark.parametrize("compression,kind", [(1, "png"), (0, "raw"), (-1, "unknown")])
 def test_sens_colour_other_than_jpeg_is_refused(tmp_path, compression, kind):
     sens = tmp_path / "scene.sens"
-    write_sens(sens, known_poses(2), color_compression=compression)
+    write_sens(sens, scannet_poses(2), color_compression=compression)
     with pytest.raises(DatasetError, match=f"{sens}: colour frames are {kind}-compressed; only jpeg"):
         parse(sens)
 
 
 def test_sens_of_another_version_is_refused(tmp_path):
     sens = tmp_path / "scene.sens"
-    write_sens(sens, known_poses(2))
+    write_sens(sens, scannet_poses(2))
     with sens.open("r+b") as f:
         f.write(struct.pack("<I", 3))
     with pytest.raises(DatasetError, match=f"{sens}: not a ScanNet .sens file of version 4 \\(version field is 3\\)"):
@@ -256,7 +178,7 @@ def test_missing_paths_are_named(tmp_path):
 
 
 def test_missing_parts_of_an_exported_folder_are_named(tmp_path):
-    folder = write_exported(tmp_path / "scene", known_poses(5))
+    folder = write_exported(tmp_path / "scene", scannet_poses(5))
     (folder / "pose" / "4.txt").unlink()
     with pytest.raises(DatasetError, match=f"^{folder / 'pose' / '4.txt'}: missing$"):
         parse(folder)
@@ -281,7 +203,7 @@ def test_missing_parts_of_an_exported_folder_are_named(tmp_path):
     ],
 )
 def test_bad_pose_files_are_named(tmp_path, content, message):
-    folder = write_exported(tmp_path / "scene", known_poses(4))
+    folder = write_exported(tmp_path / "scene", scannet_poses(4))
     (folder / "pose" / "2.txt").write_text(content)
     with pytest.raises(DatasetError, match=f"^{folder / 'pose' / '2.txt'}: {message}"):
         parse(folder)
@@ -289,25 +211,25 @@ def test_bad_pose_files_are_named(tmp_path, content, message):
 
 def test_bad_sens_pose_and_all_lost_are_named(tmp_path):
     sens = tmp_path / "scene.sens"
-    poses = known_poses(3)
+    poses = scannet_poses(3)
     poses[1, :3, :3] *= 2
     write_sens(sens, poses)
     with pytest.raises(DatasetError, match=f"{sens} frame 1: pose is not a rigid transform"):
         parse(sens)
-    write_sens(sens, known_poses(3), lost=(0, 1, 2))
+    write_sens(sens, scannet_poses(3), lost=(0, 1, 2))
     with pytest.raises(DatasetError, match=f"{sens}: every frame's pose is -inf"):
         parse(sens)
 
 
 def test_bad_options_are_config_errors(tmp_path):
-    folder = write_exported(tmp_path / "scene", known_poses(3))
+    folder = write_exported(tmp_path / "scene", scannet_poses(3))
     with pytest.raises(ContinualConfigError, match="--frame-stride must be at least 1"):
         parse(folder, frame_stride=0)
 
 
 def test_short_continual_ngp_run_on_a_sens_file(tmp_path):
     sens = tmp_path / "scene0160_00.sens"
-    write_sens(sens, known_poses(10, seed=2))
+    write_sens(sens, scannet_poses(10, seed=2))
     config = tiny_config(
         tmp_path / "outputs", ContinualScanNetDataParserConfig(data=sens), num_tasks=2, iterations_per_task=2
     )

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from continual_nerf.errors import ContinualConfigError
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.core.task_split import split_into_tasks
+from continual_nerf.errors import ContinualConfigError
 
 
 @pytest.mark.parametrize("num_frames,num_tasks,interval", [(120, 10, 8), (37, 5, 8), (10, 5, 2), (9, 1, 3)])

@@ -4,70 +4,27 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 import numpy as np
 import pytest
-from conftest import original_poses, tiny_config, train
-from PIL import Image
+from helpers import (
+    HEIGHT,
+    IMAGE_TIMES,
+    POSE_TIMES,
+    START,
+    WIDTH,
+    original_poses,
+    pose_at,
+    tiny_config,
+    train,
+    write_sequence,
+)
 
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
-WIDTH, HEIGHT = 32, 24
-START = 1305031102.0
-"""Timestamps are seconds since the Unix epoch, as in the dataset."""
-AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-IMAGE_TIMES = START + 0.0047 + np.arange(12) / 30
-"""30 Hz images; the first three come before the ground truth starts."""
-POSE_TIMES = START + 0.1 + np.arange(51) / 100
-"""100 Hz ground truth from 0.1 s to 0.6 s."""
-
-
-def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues' formula."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def angle_at(t: float) -> float:
-    return 0.3 + 2.0 * (t - START)
-
-
-def pose_at(t: float) -> np.ndarray:
-    """OpenCV camera-to-world at time t: constant velocity, constant turn rate about a fixed axis."""
-    pose = np.eye(4)
-    pose[:3, :3] = rotation(AXIS, angle_at(t))
-    pose[:3, 3] = [1.0 + 2.0 * (t - START), -0.5 + 1.0 * (t - START), 1.2 - 0.8 * (t - START)]
-    return pose
-
-
-def groundtruth_line(t: float, scale: float = 1.0) -> str:
-    """`timestamp tx ty tz qx qy qz qw`, scalar last; `scale` makes the quaternion non-unit."""
-    half = angle_at(t) / 2
-    quaternion = scale * np.array([*(AXIS * np.sin(half)), np.cos(half)])
-    return " ".join(f"{v:.9f}" for v in [t, *pose_at(t)[:3, 3], *quaternion])
-
-
-def write_sequence(
-    folder: Path,
-    image_times: np.ndarray = IMAGE_TIMES,
-    pose_times: np.ndarray = POSE_TIMES,
-    groundtruth_lines: Optional[List[str]] = None,
-) -> Path:
-    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each."""
-    (folder / "rgb").mkdir(parents=True)
-    rgb_lines = ["# color images", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
-    for i, t in enumerate(image_times):
-        pixels = np.random.default_rng(i).integers(0, 255, size=(HEIGHT, WIDTH, 3), dtype=np.uint8)
-        Image.fromarray(pixels).save(folder / "rgb" / f"{t:.6f}.png")
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
-    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-    header = ["# ground truth trajectory", "# file: 'rgbd_dataset.bag'", "# timestamp tx ty tz qx qy qz qw"]
-    body = groundtruth_lines if groundtruth_lines is not None else [groundtruth_line(t) for t in pose_times]
-    (folder / "groundtruth.txt").write_text("\n".join(header + body) + "\n")
-    return folder
 
 
 def parse(data: Path, **options):

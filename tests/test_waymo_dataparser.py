@@ -2,99 +2,50 @@
 
 from __future__ import annotations
 
-import io
 import struct
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import List, Optional
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 import pytest
-from conftest import tiny_config, train
+from helpers import (
+    CAMERAS,
+    EXTRINSICS,
+    NUM_TIMES,
+    SEGMENT,
+    SIZES,
+    TIMES,
+    corrupt,
+    doubles,
+    field,
+    fixture_pose,
+    intrinsic,
+    reference_crc32c,
+    reference_masked,
+    tfrecord,
+    tiny_config,
+    train,
+    v1_frame,
+    varint,
+    vehicle_pose,
+    write_v1,
+    write_v2,
+)
 from PIL import Image
 
 from continual_nerf.dataparsers.tfrecord import Message, crc32c, masked_crc32c
-from continual_nerf.dataparsers.waymo_dataparser import (
-    CAMERA_IDS,
-    EXTRINSIC,
-    HEIGHT,
-    IMAGE,
-    IMAGE_POSE,
-    INTRINSIC,
-    TIMESTAMP,
-    VEHICLE_POSE,
-    WIDTH,
-    WaymoDataParserConfig,
-    capture_frames,
-    read_segment,
-    read_vehicle_poses,
-)
+from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig, capture_frames, read_segment
+from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
+from continual_nerf.dataparsers.waymo_v2 import IMAGE, INTRINSIC, VEHICLE_POSE, WIDTH, read_vehicle_poses
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
-WAYMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo"
+WAYMO = Path(__file__).parent / "data" / "waymo"
+"""Real Waymo Open Dataset files (origin and licence in its README.md)."""
 REAL_V1 = WAYMO / "v1_one_frame_five_cameras.tfrecord"
 REAL_V2_VEHICLE_POSE = WAYMO / "v2_vehicle_pose_199_frames.parquet"
-SEGMENT = "4242_000_020_000"
-CAMERAS = list(CAMERA_IDS)
-WORLD_ORIGIN = np.array([-25211.0, 42391.0, -161.0])
-"""Where the generated segments drive: world coordinates as large as Waymo's."""
-NUM_TIMES = 6
-TIMES = [1_553_735_853_000_000 + 100_000 * i for i in range(NUM_TIMES)]
 
 
-# ---- known geometry of the generated segments ----
-
-
-def rotation_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rigid(rotation: np.ndarray, translation) -> np.ndarray:
-    matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = rotation, translation
-    return matrix
-
-
-def vehicle_pose(i: int) -> np.ndarray:
-    """The vehicle drives forward while it turns left."""
-    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i, 0.4 * i, 0.01 * i])
-
-
-def image_pose(i: int, camera: str) -> np.ndarray:
-    """Each camera's own pose: the vehicle a few cm further on (rolling shutter), different per camera."""
-    return rigid(rotation_z(0.05 * i + 0.3), WORLD_ORIGIN + [2.0 * i + 0.01 * CAMERA_IDS[camera], 0.4 * i, 0.01 * i])
-
-
-EXTRINSICS = {
-    "FRONT": rigid(rotation_z(0.0), [1.5, 0.0, 2.1]),
-    "FRONT_LEFT": rigid(rotation_z(np.pi / 4), [1.5, 0.1, 2.1]),
-    "FRONT_RIGHT": rigid(rotation_z(-np.pi / 4), [1.5, -0.1, 2.1]),
-    "SIDE_LEFT": rigid(rotation_z(np.pi / 2), [1.4, 0.1, 2.1]),
-    "SIDE_RIGHT": rigid(rotation_z(-np.pi / 2), [1.4, -0.1, 2.1]),
-}
-SIZES = {
-    "FRONT": (16, 12),
-    "FRONT_LEFT": (16, 12),
-    "FRONT_RIGHT": (16, 12),
-    "SIDE_LEFT": (16, 8),
-    "SIDE_RIGHT": (16, 8),
-}
-
-
-def intrinsic(camera: str) -> List[float]:
-    """[f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3], different per camera."""
-    width, height = SIZES[camera]
-    n = CAMERA_IDS[camera]
-    return [20.0 + n, 21.0 + n, width / 2 + 0.1 * n, height / 2, 0.01 * n, -0.002, 0.001, -0.001, 0.0005 * n]
-
-
-def jpeg(camera: str, i: int) -> bytes:
-    """A tiny image whose colour encodes camera and time."""
-    buffer = io.BytesIO()
-    Image.new("RGB", SIZES[camera], (40 * CAMERA_IDS[camera], 30 * i, 128)).save(buffer, format="JPEG")
-    return buffer.getvalue()
+# ---- what the generated segments must read back as (captures.py writes them) ----
 
 
 def expected_camera_to_world(pose: np.ndarray, camera: str, reference: np.ndarray) -> np.ndarray:
@@ -125,148 +76,6 @@ def assert_known_segment(config: WaymoDataParserConfig, pose_of, times: List[int
         assert abs(int(colour[1]) - 30 * TIMES.index(timestamp)) < 8
     np.testing.assert_array_equal(frames.width, [SIZES[camera][0] for camera in segment.cameras])
     np.testing.assert_array_equal(frames.height, [SIZES[camera][1] for camera in segment.cameras])
-
-
-# ---- version 2 fixture: Parquet with Waymo's column names ----
-
-
-def transform_column(matrices: List[Optional[np.ndarray]], fixed_size: bool = True) -> pa.Array:
-    """16 doubles per row; Waymo writes fixed-size lists, which pyarrow cannot read back with nulls in them."""
-    values = [None if m is None else m.ravel().tolist() for m in matrices]
-    return pa.array(values, type=pa.list_(pa.float64(), 16 if fixed_size else -1))
-
-
-def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_poses: bool = True) -> Path:
-    """A v2 root of one segment: camera images shuffled over several row groups, one image without its own pose."""
-    rows = [(i, camera) for i in range(NUM_TIMES) for camera in CAMERAS]
-    rows = [rows[k] for k in np.random.default_rng(0).permutation(len(rows))]
-    own_pose = [image_poses and (i, camera) != (1, "SIDE_LEFT") for i, camera in rows]
-    images = {
-        "key.segment_context_name": pa.array([SEGMENT] * len(rows)),
-        TIMESTAMP: pa.array([TIMES[i] for i, _ in rows], type=pa.int64()),
-        "key.camera_name": pa.array([CAMERA_IDS[camera] for _, camera in rows], type=pa.int8()),
-        IMAGE: pa.array([jpeg(camera, i) for i, camera in rows], type=pa.binary()),
-        IMAGE_POSE: transform_column([image_pose(i, c) if own else None for (i, c), own in zip(rows, own_pose)], False),
-        "[CameraImageComponent].pose_timestamp": pa.array([TIMES[i] / 1e6 for i, _ in rows]),
-    }
-    calibration = {
-        "key.segment_context_name": pa.array([SEGMENT] * len(CAMERAS)),
-        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in CAMERAS], type=pa.int8()),
-        **{name: pa.array([intrinsic(camera)[k] for camera in CAMERAS]) for k, name in enumerate(INTRINSIC)},
-        EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in CAMERAS]),
-        WIDTH: pa.array([SIZES[camera][0] for camera in CAMERAS], type=pa.int32()),
-        HEIGHT: pa.array([SIZES[camera][1] for camera in CAMERAS], type=pa.int32()),
-        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(CAMERAS), type=pa.int8()),
-    }
-    poses = {
-        "key.segment_context_name": pa.array([SEGMENT] * NUM_TIMES),
-        TIMESTAMP: pa.array(TIMES[::-1], type=pa.int64()),
-        VEHICLE_POSE: transform_column([vehicle_pose(i) for i in reversed(range(NUM_TIMES))]),
-    }
-    for component, columns in (("camera_image", images), ("camera_calibration", calibration), ("vehicle_pose", poses)):
-        if not image_poses and component == "camera_image":
-            del columns[IMAGE_POSE]
-        columns.pop((skip_columns or {}).get(component, ""), None)
-        (root / component).mkdir(parents=True, exist_ok=True)
-        pq.write_table(pa.table(columns), root / component / f"{SEGMENT}.parquet", row_group_size=7)
-    return root
-
-
-# ---- version 1 fixture: TFRecord framing and protobuf bytes written by hand ----
-
-
-def reference_crc32c(data: bytes) -> int:
-    """Bit by bit, straight from the definition (reflected Castagnoli polynomial)."""
-    crc = 0xFFFFFFFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
-    return crc ^ 0xFFFFFFFF
-
-
-def reference_masked(data: bytes) -> int:
-    crc = reference_crc32c(data)
-    return (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF
-
-
-def varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        out.append(value & 0x7F | (0x80 if value > 0x7F else 0))
-        value >>= 7
-        if not value:
-            return bytes(out)
-
-
-def field(number: int, payload) -> bytes:
-    """A varint field for an int, a length-delimited one for bytes."""
-    if isinstance(payload, int):
-        return varint(number << 3) + varint(payload)
-    return varint(number << 3 | 2) + varint(len(payload)) + payload
-
-
-def doubles(number: int, values, packed: bool) -> bytes:
-    values = [float(v) for v in values]
-    if packed:
-        return field(number, struct.pack(f"<{len(values)}d", *values))
-    return b"".join(varint(number << 3 | 1) + struct.pack("<d", v) for v in values)
-
-
-def transform(matrix: np.ndarray) -> bytes:
-    return doubles(1, matrix.ravel(), packed=True)
-
-
-def v1_frame(i: int, cameras: List[str]) -> bytes:
-    """A Frame: context with calibrations (intrinsics not packed, as in real files), pose, images, unknown fields."""
-    calibrations = b"".join(
-        field(
-            2,
-            field(1, CAMERA_IDS[c])
-            + doubles(2, intrinsic(c), packed=False)
-            + field(3, transform(EXTRINSICS[c]))
-            + field(4, SIZES[c][0])
-            + field(5, SIZES[c][1])
-            + field(6, 2),
-        )
-        for c in cameras
-    )
-    images = b"".join(
-        field(
-            4,
-            field(1, CAMERA_IDS[c])
-            + field(2, jpeg(c, i))
-            + (b"" if (i, c) == (1, "SIDE_LEFT") else field(3, transform(image_pose(i, c))))
-            + doubles(5, [TIMES[i] / 1e6], packed=False),
-        )
-        for c in reversed(cameras)
-    )
-    lasers = field(5, field(1, 1) + field(2, bytes(300)))
-    return (
-        field(1, field(1, SEGMENT.encode()) + calibrations)
-        + field(2, TIMES[i])
-        + field(3, transform(vehicle_pose(i)))
-        + images
-        + lasers
-    )
-
-
-def tfrecord(records: List[bytes]) -> bytes:
-    out = b""
-    for data in records:
-        length = struct.pack("<Q", len(data))
-        out += length + struct.pack("<I", reference_masked(length)) + data + struct.pack("<I", reference_masked(data))
-    return out
-
-
-def write_v1(path: Path, times: Sequence[int] = range(NUM_TIMES)) -> Path:
-    path.write_bytes(tfrecord([v1_frame(i, CAMERAS) for i in times]))
-    return path
-
-
-def fixture_pose(i: int, camera: str) -> np.ndarray:
-    """Both fixtures give every image its own pose but SIDE_LEFT's at time 1, which takes the frame's."""
-    return vehicle_pose(i) if (i, camera) == (1, "SIDE_LEFT") else image_pose(i, camera)
 
 
 def config(data: Path, cache: Optional[Path], **options) -> WaymoDataParserConfig:
@@ -430,12 +239,6 @@ def test_missing_calibration_of_a_chosen_camera_is_named(tmp_path):
     data = tmp_path / "segment.tfrecord"
     data.write_bytes(tfrecord([v1_frame(0, ["FRONT", "SIDE_LEFT"])]))
     expect_error(DatasetError, f"{data}: no calibration for camera FRONT_LEFT", config(data, tmp_path))
-
-
-def corrupt(path: Path, offset: int) -> None:
-    data = bytearray(path.read_bytes())
-    data[offset] ^= 0x01
-    path.write_bytes(bytes(data))
 
 
 def test_corrupt_tfrecord_length_and_data_are_named(tmp_path):

@@ -22,8 +22,8 @@ from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.dataparsers.ordered_capture_dataparser import DISTORTION_KEYS
 from continual_nerf.dataparsers.stream_dataparser import ENTRY_RANK
+from continual_nerf.dataparsers.transforms_json import DISTORTION_KEYS
 from continual_nerf.errors import ContinualNerfError, DatasetError
 
 

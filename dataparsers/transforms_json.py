@@ -1,0 +1,65 @@
+"""nerfstudio's transforms.json frame format, shared by every reader and writer of it.
+
+`continual-nerfstudio` reads whole transforms.json files (and COLMAP cameras, as the same keys), the
+`continual-stream` capture folder holds one transforms.json frame per file, and the replay-capture command writes them.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any, List, Mapping, Tuple
+
+import numpy as np
+from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, CameraType
+
+from continual_nerf.dataparsers.capture import check_pose
+from continual_nerf.errors import DatasetError
+
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+"""transforms.json intrinsics every frame needs, from the frame itself or from the whole file."""
+
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+"""transforms.json distortion keys, in the order of nerfstudio's distortion_params."""
+
+PERSPECTIVE_MODELS = tuple(name for name, kind in CAMERA_MODEL_TO_TYPE.items() if kind == CameraType.PERSPECTIVE)
+"""Camera models the capture base can train on (it builds perspective cameras)."""
+
+
+def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Intrinsics and distortion from transforms.json-style keys; only perspective camera models are accepted."""
+    model = values.get("camera_model", "OPENCV")
+    if model not in PERSPECTIVE_MODELS:
+        supported = ", ".join(PERSPECTIVE_MODELS)
+        raise DatasetError(f"{source}: camera model {model} is not supported (perspective only: {supported})")
+    missing = [key for key in INTRINSIC_KEYS if key not in values]
+    if missing:
+        raise DatasetError(f"{source}: {', '.join(missing)} missing (set per frame or once for the whole file)")
+    try:
+        intrinsics = np.array([float(values[key]) for key in INTRINSIC_KEYS])
+        distortion = np.array(
+            values.get("distortion_params") or [values.get(key, 0.0) for key in DISTORTION_KEYS], dtype=np.float64
+        )
+    except (TypeError, ValueError):
+        raise DatasetError(f"{source}: intrinsics and distortion must be numbers") from None
+    if distortion.shape != (len(DISTORTION_KEYS),):
+        raise DatasetError(f"{source}: distortion_params must hold 6 numbers {list(DISTORTION_KEYS)}")
+    return intrinsics, distortion
+
+
+def transforms_pose(value: Any, source: str) -> np.ndarray:
+    """A transforms.json transform_matrix (OpenGL camera-to-world, 4x4 or 3x4) as a checked 4x4 matrix."""
+    try:
+        matrix = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{source}: transform_matrix is not a matrix of numbers") from None
+    if matrix.shape not in ((4, 4), (3, 4)):
+        raise DatasetError(f"{source}: transform_matrix must be a 4x4 or 3x4 matrix, got shape {matrix.shape}")
+    camera_to_world = np.eye(4)
+    camera_to_world[:3] = matrix[:3]
+    check_pose(camera_to_world, source)
+    return camera_to_world
+
+
+def natural_key(name: str) -> List[Any]:
+    """Sort key comparing digit runs as numbers; re.split alternates text and digits, so types always line up."""
+    return [int(chunk) if position % 2 else chunk for position, chunk in enumerate(re.split(r"(\d+)", name))]
