@@ -23,23 +23,26 @@ def _adam() -> dict:
     return {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": None}
 
 
-continual_ngp = MethodSpecification(
-    config=ContinualTrainerConfig(
-        method_name="continual-ngp",
-        steps_per_eval_batch=500,
-        steps_per_eval_image=500,
-        steps_per_eval_all_images=10**9,
-        steps_per_save=2000,
-        save_only_latest_checkpoint=False,
-        mixed_precision=True,
-        pipeline=ContinualPipelineConfig(
-            datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
-            model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
-        ),
-        optimizers={"proposal_networks": _adam(), "fields": _adam()},
-        viewer=ViewerConfig(websocket_host="127.0.0.1", num_rays_per_chunk=1 << 13),
-        vis="viewer",
+CONTINUAL_NGP = ContinualTrainerConfig(
+    method_name="continual-ngp",
+    steps_per_eval_batch=500,
+    steps_per_eval_image=500,
+    steps_per_eval_all_images=10**9,
+    steps_per_save=2000,
+    save_only_latest_checkpoint=False,
+    mixed_precision=True,
+    pipeline=ContinualPipelineConfig(
+        datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
+        model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
     ),
+    optimizers={"proposal_networks": _adam(), "fields": _adam()},
+    viewer=ViewerConfig(websocket_host="127.0.0.1", num_rays_per_chunk=1 << 13),
+    vis="viewer",
+)
+"""continual-ngp: the paper's method; every other method is a difference from it."""
+
+continual_ngp = MethodSpecification(
+    config=CONTINUAL_NGP,
     description="Instant continual learning of NeRFs (Po et al.): hash grid + replay by distillation, task by task.",
 )
 
@@ -54,7 +57,7 @@ def _streaming(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
 
 
 continual_ngp_stream = MethodSpecification(
-    config=_streaming(continual_ngp.config),
+    config=_streaming(CONTINUAL_NGP),
     description="continual-ngp on a capture folder that is still being written (continual-stream): "
     "a task opens whenever its frames have arrived.",
 )
@@ -87,33 +90,39 @@ def _nerf(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
     return config
 
 
+CONTINUAL_NGP_INCRE = _variant(CONTINUAL_NGP, "continual-ngp-incre", replay=False)
+"""iNGP-Incre: continual-ngp without replay."""
+
 continual_ngp_incre = MethodSpecification(
-    config=_variant(continual_ngp.config, "continual-ngp-incre", replay=False),
+    config=CONTINUAL_NGP_INCRE,
     description="iNGP-Incre (paper baseline): continual-ngp's hash grid trained task by task without replay.",
 )
 
 continual_ngp_ewc = MethodSpecification(
-    config=_ewc(continual_ngp.config),
+    config=_ewc(CONTINUAL_NGP),
     description="iNGP + EWC (paper baseline): the hash grid without replay, held near each task's parameters "
     "by Elastic Weight Consolidation.",
 )
 
 continual_ngp_joint = MethodSpecification(
-    config=_variant(continual_ngp.config, "continual-ngp-joint", replay=False, joint=True),
+    config=_variant(CONTINUAL_NGP, "continual-ngp-joint", replay=False, joint=True),
     description="iNGP* (upper bound): the hash grid trained on every task's images at once, same total budget.",
 )
 
+CONTINUAL_NERF_MEIL = _nerf(CONTINUAL_NGP)
+"""MEIL-NeRF as the paper ran it; the NeRF-backbone baselines differ from it."""
+
 continual_nerf_meil = MethodSpecification(
-    config=_nerf(continual_ngp.config),
+    config=CONTINUAL_NERF_MEIL,
     description="MEIL-NeRF as the paper ran it: vanilla NeRF with replay by distillation from stored poses (Eq. 4).",
 )
 
 continual_nerf_incre = MethodSpecification(
-    config=_variant(continual_nerf_meil.config, "continual-nerf-incre", replay=False),
+    config=_variant(CONTINUAL_NERF_MEIL, "continual-nerf-incre", replay=False),
     description="NeRF-Incre (paper baseline): vanilla NeRF (frequency encoding + MLP) trained task by task.",
 )
 
 continual_nerf_joint = MethodSpecification(
-    config=_variant(continual_nerf_meil.config, "continual-nerf-joint", replay=False, joint=True),
+    config=_variant(CONTINUAL_NERF_MEIL, "continual-nerf-joint", replay=False, joint=True),
     description="NeRF* (upper bound): vanilla NeRF trained on every task's images at once, same total budget.",
 )

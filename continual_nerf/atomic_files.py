@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import BinaryIO, Callable, Optional
 
 
-def write_atomically(path: Path, write: Callable[[BinaryIO], None], temporary_dir: Optional[Path] = None) -> None:
+def write_atomically(path: Path, write: Callable[[BinaryIO], object], temporary_dir: Optional[Path] = None) -> None:
     """Call `write` on a temporary file in `temporary_dir` (default: beside `path`), then rename it to `path`."""
     folder = path.parent if temporary_dir is None else temporary_dir
     folder.mkdir(parents=True, exist_ok=True)

@@ -70,7 +70,8 @@ def read_checkpoint(path: Path) -> Dict[str, Any]:
 
 def rng_states() -> Dict[str, Any]:
     """The states of every random number generator training draws from, in weights_only-loadable types."""
-    _, keys, position, has_gauss, cached_gaussian = np.random.get_state()
+    _, keys, position, has_gauss, cached_gaussian = np.random.get_state(legacy=True)
+    assert isinstance(keys, np.ndarray)
     return {
         "torch": torch.get_rng_state(),
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import threading
-from typing import Any, Callable, List
+from typing import Any, Callable
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -19,7 +19,12 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import nn
 
 from continual_nerf.errors import first_line
-from continual_nerf.nerfstudio_compat import hot_modules, proposal_sampler_state, replace_forward, set_proposal_sampler_state
+from continual_nerf.nerfstudio_compat import (
+    hot_modules,
+    proposal_sampler_state,
+    replace_forward,
+    set_proposal_sampler_state,
+)
 
 
 class CompiledForward:
@@ -45,7 +50,9 @@ class CompiledForward:
 
     def _fail(self, error: Exception) -> None:
         if not CompiledForward.failed:
-            CONSOLE.print(f"[yellow]torch.compile unavailable ({self.name}: {first_line(error)}); running the model eager")
+            CONSOLE.print(
+                f"[yellow]torch.compile unavailable ({self.name}: {first_line(error)}); running the model eager"
+            )
         CompiledForward.failed = True
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
@@ -90,10 +97,10 @@ def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> Non
     """Compile now rather than in the first training steps, so that a timed task (--seconds-per-task) counts training.
 
     Renders `num_rays` rays (the training batch: compiled code is specialised on size ranges) with gradients (a
-    training step) and without (proposal rounds that skip their update, evaluation, the replay oracle); the parameters, their gradients, the proposal sampler's counters and the random generators
-    are left as they were.
+    training step) and without (proposal rounds that skip their update, evaluation, the replay oracle); the
+    parameters, their gradients, the proposal sampler's counters and the random generators are left as they were.
     """
-    if not is_compiled(model):
+    if not isinstance(model, NerfactoModel) or not is_compiled(model):
         return
     CONSOLE.print("Compiling the hash grids and MLPs (torch.compile)...")
     was_training = model.training

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import List, Literal, Optional, Tuple, Type
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -21,6 +21,9 @@ from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
 from continual_nerf.validated_config import ValidatedConfig
+
+OrientationMethod = Literal["pca", "up", "vertical", "none"]
+"""nerfstudio's auto_orient_and_center_poses methods."""
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplied onto an OpenCV camera-to-world matrix (looks down +z, +y down) gives OpenGL's."""
@@ -40,7 +43,7 @@ class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
     """Keep at most this many frames, from the start of the capture, after the stride."""
     downscale_factor: int = 1
     """Divide image width and height by this factor when the images are loaded."""
-    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    orientation_method: OrientationMethod = "up"
     """How nerfstudio's auto_orient_and_center_poses turns the scene before it is scaled."""
     scene_scale: float = 1.0
     """Extra factor on top of the automatic scale that fits all camera centres into [-1, 1]."""
@@ -81,7 +84,8 @@ class CaptureFrames:
             name: getattr(self, name)[keep] for name in ("camera_to_worlds", "fx", "fy", "cx", "cy", "width", "height")
         }
         optional = {
-            name: None if getattr(self, name) is None else getattr(self, name)[keep] for name in ("distortion", "time_group")
+            name: None if getattr(self, name) is None else getattr(self, name)[keep]
+            for name in ("distortion", "time_group")
         }
         return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
 
@@ -91,7 +95,9 @@ def check_pose(matrix: np.ndarray, source: str) -> None:
     if not np.isfinite(matrix).all():
         raise DatasetError(f"{source}: pose has NaN or infinite entries")
     rotation = matrix[:3, :3]
-    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-3)):
+    if not (
+        np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-3)
+    ):
         raise DatasetError(f"{source}: pose is not a rigid transform (its 3x3 block is not a rotation)")
 
 
@@ -114,7 +120,9 @@ def select_frames(frames: CaptureFrames, config: CaptureDataParserConfig) -> Cap
     return frames.select(keep)
 
 
-def fit_into_box(camera_to_worlds: np.ndarray, orientation_method: str, scene_scale: float) -> Tuple[np.ndarray, float]:
+def fit_into_box(
+    camera_to_worlds: np.ndarray, orientation_method: OrientationMethod, scene_scale: float
+) -> Tuple[np.ndarray, float]:
     """A (3, 4) float64 transform and a scale that centre, orient and fit (N, 4, 4) `camera_to_worlds` into
     +-scene_scale (a scale of scene_scale when every camera stands at one point)."""
     # recentre in float64 first: nerfstudio's orientation runs in float32, and world coordinates can be kilometres
@@ -123,7 +131,9 @@ def fit_into_box(camera_to_worlds: np.ndarray, orientation_method: str, scene_sc
     recentred[:, :3, 3] -= origin
     # nerfstudio 1.1.5's "pca" flips whole poses instead of two axes; the transform it returns is right
     _, rotation = camera_utils.auto_orient_and_center_poses(
-        torch.from_numpy(recentred).float(), method=orientation_method, center_method="none"  # type: ignore[arg-type]
+        torch.from_numpy(recentred).float(),
+        method=orientation_method,
+        center_method="none",  # type: ignore[arg-type]
     )
     translate = np.eye(4)
     translate[:3, 3] = -origin
@@ -166,9 +176,9 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     )
 
 
-def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> dict:
+def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
     """What the continual datamanager reads besides cameras: the image downscale and the capture instants."""
-    metadata = {"image_scale_factor": 1.0 / config.downscale_factor}
+    metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
     if frames.time_group is not None:
         metadata["time_group"] = torch.from_numpy(np.asarray(frames.time_group)).long()
     return metadata

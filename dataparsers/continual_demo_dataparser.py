@@ -76,7 +76,9 @@ class ContinualDemoDataParser(DataParser):
         for i, c2w in enumerate(poses):
             image = demo_scene.render_view(c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, crates)
             Image.fromarray(image).save(partial / "images" / f"frame_{i:05d}.png")
-            frames.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()})
+            frames.append(
+                {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()}
+            )
         transforms = {"fl_x": focal, "fl_y": focal, "cx": c.width / 2, "cy": c.height / 2, "w": c.width, "h": c.height}
         (partial / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}, indent=1))
         if folder.exists():

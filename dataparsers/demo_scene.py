@@ -81,9 +81,10 @@ def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> 
     ceiling = (axis == 2) & positive
     colour[ceiling] = (0.8 + 0.15 * np.sin(2 * np.pi * x / 2.0))[ceiling, None] * np.array([0.95, 0.93, 0.88])
     ends = axis == 0
-    colour[ends] = np.where(positive[ends, None], [[0.2, 0.3, 0.8]], [[0.8, 0.3, 0.2]]) * (
-        0.7 + 0.3 * _checker(y, z, 0.4)
-    )[ends, None]
+    colour[ends] = (
+        np.where(positive[ends, None], [[0.2, 0.3, 0.8]], [[0.8, 0.3, 0.2]])
+        * (0.7 + 0.3 * _checker(y, z, 0.4))[ends, None]
+    )
     return colour
 
 

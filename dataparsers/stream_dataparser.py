@@ -1,43 +1,20 @@
 """`continual-stream`: frames read from a capture folder that another process is still writing.
 
-The capture protocol (what `continual-nerf-replay-capture` writes, and what a live capture process must write):
-
-- A frame is an image file anywhere inside the folder plus `<sequence>.json` in the folder itself: one frame of
-  nerfstudio's transforms.json, i.e. `file_path` (relative to the folder), `transform_matrix` (camera-to-world,
-  OpenGL convention) and the intrinsics `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` (optional `camera_model` and
-  distortion `k1` ... `p2`).
-- Write the image first, then the JSON under a temporary name (`<sequence>.json.tmp`) and rename it to
-  `<sequence>.json`: a frame exists once its JSON has its final name.
-- An empty `<sequence>.task` closes the current task after the frames before it; `<sequence>.end` ends the capture.
-- Sequence numbers increase in capture order (`000017.json`); a marker may reuse the number of the frame it follows.
-
-Names that start with a dot or do not end in .json, .task or .end are ignored. A JSON that does not parse, or whose
-image does not decode yet, is retried on the next poll and the entries after it wait, so capture order is kept.
+The capture protocol and its reader live in continual_nerf/streaming/capture_folder.py; this module is its
+nerfstudio dataparser (options and outputs) for `ns-train continual-ngp-stream continual-stream --data <folder>`.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Literal, Optional, Set, Tuple, Type, Union
+from typing import Literal, Optional, Type
 
-import numpy as np
-import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
-from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image
 
-from continual_nerf.dataparsers.capture import CaptureDataParserConfig, fit_into_box, fitted_poses
-from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
-from continual_nerf.errors import ContinualConfigError, DatasetError
-
-ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
-"""Entry kinds by file suffix; at equal sequence numbers a frame comes before the marker that follows it."""
+from continual_nerf.dataparsers.capture import CaptureDataParserConfig
+from continual_nerf.errors import ContinualConfigError
+from continual_nerf.streaming.capture_folder import CaptureTasks
 
 
 @dataclass
@@ -47,7 +24,7 @@ class StreamDataParserConfig(CaptureDataParserConfig):
     _target: Type = field(default_factory=lambda: StreamDataParser)
     """The dataparser this config builds."""
     data: Path = Path("capture")
-    """Capture folder another process writes frames into (protocol: continual_nerf/dataparsers/stream_dataparser.py)."""
+    """Capture folder another process writes frames into (protocol: continual_nerf/streaming/capture_folder.py)."""
     frames_per_task: int = 20
     """A task closes once this many frames have arrived (0: only `.task` markers close tasks)."""
     poll_seconds: float = 0.5
@@ -79,263 +56,20 @@ class StreamDataParserConfig(CaptureDataParserConfig):
             raise ContinualConfigError("--normalization file needs --transform-file (a dataparser_transforms.json)")
 
 
-@dataclass(frozen=True)
-class StreamFrame:
-    """One frame of the capture, as its JSON describes it."""
-
-    name: str
-    """File name of the frame's JSON in the capture folder."""
-    image: Path
-    """The frame's image file."""
-    camera_to_world: np.ndarray
-    """(4, 4) float64, OpenGL convention, in the capture's own world units."""
-    intrinsics: np.ndarray
-    """fx, fy, cx, cy, width, height."""
-    distortion: np.ndarray
-    """nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2]."""
-
-
-@dataclass(frozen=True)
-class StreamMarker:
-    """A `.task` or `.end` marker file."""
-
-    name: str
-    """File name of the marker in the capture folder."""
-    kind: Literal["task", "end"]
-    """task: the frames before it form a task; end: the capture is over."""
-
-
-class NotReady(Exception):
-    """An entry that is still being written: read again on the next poll."""
-
-
-def check_image(image: Path, intrinsics: np.ndarray, source: str) -> None:
-    """Decode `image` completely; a missing or truncated file is not ready, a wrong size is an error."""
-    try:
-        with Image.open(image) as picture:
-            picture.load()
-            size = picture.size
-    except FileNotFoundError:
-        raise NotReady(f"{image} does not exist yet") from None
-    except (OSError, SyntaxError, ValueError) as error:  # PIL's errors for a file cut short
-        raise NotReady(f"{image} does not decode yet ({error})") from None
-    width, height = int(intrinsics[4]), int(intrinsics[5])
-    if size != (width, height):
-        raise DatasetError(
-            f"{source}: image {image} is {size[0]}x{size[1]} pixels, the frame says w={width} h={height}"
-        )
-
-
-def read_frame(path: Path) -> StreamFrame:
-    """A frame JSON and a check that its image decodes."""
-    try:
-        frame = json.loads(path.read_text())
-    except FileNotFoundError:  # replaced or removed by the writer since the folder was listed
-        raise NotReady(f"{path} is gone") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise NotReady(f"not valid JSON yet ({error})") from None
-    if not isinstance(frame, dict) or "file_path" not in frame:
-        raise DatasetError(f"{path}: a frame needs `file_path` (nerfstudio's transforms.json frame format)")
-    source = str(path)
-    intrinsics, distortion = parse_intrinsics(frame, source)
-    camera_to_world = transforms_pose(frame.get("transform_matrix"), source)
-    image = path.parent / str(frame["file_path"])
-    check_image(image, intrinsics, source)
-    return StreamFrame(path.name, image, camera_to_world, intrinsics, distortion)
-
-
-def read_entry(path: Path) -> Union[StreamFrame, StreamMarker]:
-    if path.suffix == ".json":
-        return read_frame(path)
-    return StreamMarker(path.name, "task" if path.suffix == ".task" else "end")
-
-
-def entry_key(name: str) -> Tuple[list, int]:
-    stem, suffix = os.path.splitext(name)
-    return natural_key(stem), ENTRY_RANK[suffix]
-
-
-class CaptureWatcher:
-    """Reads a capture folder's entries in sequence order, each once, and each only when completely written."""
-
-    def __init__(self, folder: Path, unreadable_timeout: float) -> None:
-        self.folder = folder
-        self.unreadable_timeout = unreadable_timeout
-        self.done: Set[str] = set()
-        """Entries already read or skipped."""
-        self.failing_since: Dict[str, float] = {}
-        """When each entry that is not ready yet was first tried."""
-
-    def _unread_names(self) -> List[str]:
-        try:
-            names = os.listdir(self.folder)
-        except FileNotFoundError:  # the capture process has not created it yet
-            return []
-        entries = [n for n in names if not n.startswith(".") and os.path.splitext(n)[1] in ENTRY_RANK]
-        return sorted((n for n in entries if n not in self.done), key=entry_key)
-
-    def _give_up(self, name: str, reason: NotReady) -> bool:
-        """Whether an entry has been unreadable for longer than the timeout (then it is skipped, with a warning)."""
-        first_try = self.failing_since.setdefault(name, time.monotonic())
-        if not (self.unreadable_timeout and time.monotonic() - first_try >= self.unreadable_timeout):
-            return False
-        CONSOLE.print(
-            f"[bold yellow]{self.folder / name}: still unreadable after {self.unreadable_timeout:g} s "
-            f"({reason}); skipped"
-        )
-        return True
-
-    def new_entries(self) -> List[Union[StreamFrame, StreamMarker]]:
-        """Entries completed since the last call, in sequence order, up to the first one still being written."""
-        ready = []
-        for name in self._unread_names():
-            try:
-                ready.append(read_entry(self.folder / name))
-            except NotReady as reason:
-                if not self._give_up(name, reason):
-                    break  # later entries wait, so the capture order is kept
-            self.done.add(name)
-            self.failing_since.pop(name, None)
-        return ready
-
-
-def read_transform_file(path: Path) -> Tuple[np.ndarray, float]:
-    """The `transform` and `scale` of a nerfstudio dataparser_transforms.json."""
-    try:
-        content = json.loads(path.read_text())
-        transform = np.array(content["transform"], dtype=np.float64)[:3]
-        scale = float(content["scale"])
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: transform file does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as error:
-        raise DatasetError(f"{path}: not a dataparser_transforms.json with `transform` and `scale` ({error})") from None
-    if transform.shape != (3, 4) or not np.isfinite(transform).all() or not scale > 0:
-        raise DatasetError(f"{path}: `transform` must be a finite 3x4 (or 4x4) matrix and `scale` positive")
-    return transform, scale
-
-
 class StreamDataParser(DataParser):
-    """Cuts the frames arriving in a capture folder into tasks and maps their poses with one fixed transform.
+    """A capture folder as a nerfstudio dataparser: the frames of the tasks complete so far (it waits for the first).
 
-    The returned outputs hold the frames of the tasks complete so far; a streaming datamanager calls `poll` to
-    collect more and reads `tasks`, `collecting` and `ended`.
+    The streaming datamanager reads later tasks from `capture` as they arrive.
     """
 
     config: StreamDataParserConfig
 
     def __init__(self, config: StreamDataParserConfig) -> None:
         super().__init__(config)
-        self.watcher = CaptureWatcher(config.data, config.unreadable_timeout)
-        self.tasks: List[List[StreamFrame]] = []
-        """Complete tasks, in capture order."""
-        self.collecting: List[StreamFrame] = []
-        """Frames of the task still being captured."""
-        self.ended = False
-        """Whether the end marker (or --max-frames) was reached: no frame is read after it."""
-        self.frames_arrived = 0
-        self.frames_kept = 0
-        self.transform: Optional[np.ndarray] = None
-        """(3, 4) float64 world-to-scene transform, fixed once the first task is complete."""
-        self.scale = 1.0
-
-    def poll(self) -> None:
-        """Take the entries completed since the last poll, closing tasks as the frame count and the markers say."""
-        for entry in [] if self.ended else self.watcher.new_entries():
-            if isinstance(entry, StreamFrame):
-                self._add(entry)
-            elif entry.kind == "task":
-                self._close_at_marker(entry.name)
-            else:
-                self._end(entry.name)
-            if self.ended:
-                return
-
-    def _add(self, frame: StreamFrame) -> None:
-        self.frames_arrived += 1
-        if (self.frames_arrived - 1) % self.config.frame_stride:
-            return
-        self.collecting.append(frame)
-        self.frames_kept += 1
-        if self.config.frames_per_task and len(self.collecting) >= self.config.frames_per_task:
-            self.close_task()
-        if self.config.max_frames is not None and self.frames_kept >= self.config.max_frames:
-            self._end("--max-frames")
-
-    def close_task(self) -> bool:
-        """Close the task being captured; False with fewer than 2 frames (a task needs a training and a test frame)."""
-        if len(self.collecting) < 2:
-            return False
-        self.tasks.append(self.collecting)
-        self.collecting = []
-        return True
-
-    def _close_at_marker(self, marker: str) -> None:
-        if not self.close_task() and self.collecting:
-            CONSOLE.print(f"[yellow]{marker}: a task needs 2 frames; {self.collecting[0].name} joins the next task")
-
-    def _end(self, reason: str) -> None:
-        self.close_task()
-        if self.collecting:
-            CONSOLE.print(f"[yellow]{self.collecting[0].name}: the last frame alone is too few for a task; not used")
-        self.ended = True
-        count = sum(len(task) for task in self.tasks)
-        CONSOLE.log(f"{self.config.data}: capture ended ({reason}): {len(self.tasks)} tasks, {count} frames")
-
-    def wait_until(self, done: Callable[[], bool]) -> None:
-        """Poll every --poll-seconds (sleeping in between) until `done()` or the end of the capture."""
-        self.poll()
-        while not done() and not self.ended:
-            time.sleep(self.config.poll_seconds)
-            self.poll()
-
-    def fix_transform(self, first_task: List[StreamFrame]) -> None:
-        """Set the pose transform once: later poses must not move the scene the model has learnt."""
-        if self.transform is not None:
-            return
-        if self.config.normalization == "file":
-            assert self.config.transform_file is not None
-            self.transform, self.scale = read_transform_file(self.config.transform_file)
-        elif self.config.normalization == "first-task":
-            poses = np.stack([frame.camera_to_world for frame in first_task])
-            method, scene_scale = self.config.orientation_method, self.config.scene_scale
-            self.transform, self.scale = fit_into_box(poses, method, scene_scale)
-        else:
-            self.transform, self.scale = np.eye(4)[:3], 1.0
-
-    def outputs(self, frames: List[StreamFrame]) -> DataparserOutputs:
-        """DataparserOutputs of `frames` (in this order) with the fixed transform."""
-        assert self.transform is not None, "the transform is fixed when the first task is complete"
-        poses = fitted_poses(np.stack([frame.camera_to_world for frame in frames]), self.transform, self.scale)
-        intrinsics = torch.from_numpy(np.stack([frame.intrinsics for frame in frames])).float()
-        distortion = np.stack([frame.distortion for frame in frames])
-        bound = self.config.scene_box_bound
-        return DataparserOutputs(
-            image_filenames=[frame.image for frame in frames],
-            cameras=Cameras(
-                camera_to_worlds=poses,
-                fx=intrinsics[:, 0:1],
-                fy=intrinsics[:, 1:2],
-                cx=intrinsics[:, 2:3],
-                cy=intrinsics[:, 3:4],
-                width=intrinsics[:, 4:5].long(),
-                height=intrinsics[:, 5:6].long(),
-                # undistorted captures skip nerfstudio's iterative undistortion of every ray
-                distortion_params=torch.from_numpy(distortion).float() if distortion.any() else None,
-                camera_type=CameraType.PERSPECTIVE,
-            ),
-            scene_box=SceneBox(aabb=torch.tensor([[-bound] * 3, [bound] * 3], dtype=torch.float32)),
-            dataparser_transform=torch.from_numpy(self.transform).float(),
-            dataparser_scale=self.scale,
-            metadata={"image_scale_factor": 1.0 / self.config.downscale_factor},
-        )
+        self.capture = CaptureTasks(config)
+        """The capture folder's frames, cut into tasks as they arrive."""
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         """The frames of every task complete so far; waits for the first one."""
-        self.poll()
-        if not self.tasks and not self.ended:
-            CONSOLE.log(f"Waiting for the first task's frames in {self.config.data.resolve()}")
-            self.wait_until(lambda: bool(self.tasks))
-        if not self.tasks:
-            raise DatasetError(f"{self.config.data}: the capture ended before its first task was complete (2 frames)")
-        self.fix_transform(self.tasks[0])
-        return self.outputs([frame for task in self.tasks for frame in task])
+        self.capture.wait_for_first_task()
+        return self.capture.outputs([frame for task in self.capture.tasks for frame in task])

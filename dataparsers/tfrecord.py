@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 from functools import lru_cache
 from pathlib import Path
-from typing import BinaryIO, Dict, Iterator, List, Tuple, Union
+from typing import BinaryIO, Dict, Iterator, List, Tuple, Union, cast
 
 import numpy as np
 
@@ -187,18 +187,22 @@ class Message:
     def has(self, number: int) -> bool:
         return number in self.fields
 
+    def _bytes(self, number: int, wire_types: Tuple[int, ...] = (LEN,)) -> List[memoryview]:
+        # every wire type but VARINT is read as raw bytes
+        return cast(List[memoryview], self._values(number, wire_types))
+
     def messages(self, number: int) -> List["Message"]:
         """Every occurrence of a (repeated) message field."""
-        return [Message(value, f"{self.source} field {number}") for value in self._values(number, (LEN,))]
+        return [Message(value, f"{self.source} field {number}") for value in self._bytes(number)]
 
     def message(self, number: int) -> "Message":
         """A singular message field (the last occurrence wins, as protobuf merges them); empty when absent."""
-        values = self._values(number, (LEN,))
+        values = self._bytes(number)
         return Message(values[-1] if values else b"", f"{self.source} field {number}")
 
     def integer(self, number: int, default: int = 0) -> int:
         """A singular varint field (int32, int64, enum) read as signed 64-bit."""
-        values = self._values(number, (VARINT,))
+        values = cast(List[int], self._values(number, (VARINT,)))  # varints are read as ints
         if not values:
             return default
         value = values[-1]
@@ -206,12 +210,12 @@ class Message:
 
     def blob(self, number: int) -> memoryview:
         """A singular bytes or string field; empty when absent."""
-        values = self._values(number, (LEN,))
+        values = self._bytes(number)
         return values[-1] if values else memoryview(b"")
 
     def doubles(self, number: int) -> np.ndarray:
         """A repeated double field, packed (one length-delimited run) or not (one 64-bit field each)."""
-        chunks = self._values(number, (I64, LEN))
+        chunks = self._bytes(number, (I64, LEN))
         if any(len(chunk) % 8 for chunk in chunks):
             raise self._error(f"packed doubles of field {number} are not a multiple of 8 bytes")
         return np.frombuffer(b"".join(chunks), dtype="<f8").astype(np.float64)

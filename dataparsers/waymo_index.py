@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence
+from typing import Dict, List, Literal, Optional, Sequence, Union
 
 import numpy as np
 
@@ -59,7 +59,7 @@ class SegmentIndex:
     images: ImageIndex
 
 
-def transform_matrix(values: Optional[Sequence[float]], source: str) -> np.ndarray:
+def transform_matrix(values: Optional[Union[Sequence[float], np.ndarray]], source: str) -> np.ndarray:
     """A row-major 4x4 transform of 16 values, as float64, checked to be rigid."""
     if values is None or len(values) != 16:
         raise DatasetError(f"{source}: a transform needs 16 values, got {0 if values is None else len(values)}")

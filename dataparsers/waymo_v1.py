@@ -54,7 +54,7 @@ def index_frame(frame: Message, cameras: Sequence[str], index: ImageIndex) -> No
     timestamp = frame.integer(2)
     for image in frame.messages(4):
         camera = CAMERA_NAMES.get(image.integer(1))
-        if camera not in cameras:
+        if camera is None or camera not in cameras:
             continue
         if not (image.has(3) or frame.has(3)):
             raise DatasetError(
@@ -86,6 +86,6 @@ def cache_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:
         frame = Message(record, f"{path} record {number}")
         timestamp = frame.integer(2)
         for image in frame.messages(4):
-            target = missing.get((timestamp, CAMERA_NAMES.get(image.integer(1))))
+            target = missing.get((timestamp, CAMERA_NAMES.get(image.integer(1), "")))
             if target is not None:
                 write_bytes_atomically(target, image.blob(2))

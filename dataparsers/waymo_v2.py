@@ -118,7 +118,7 @@ def index_images(path: Path, cameras: Sequence[str], vehicle_pose_path: Path) ->
         table.column(TIMESTAMP).to_pylist(), table.column(CAMERA).to_pylist(), image_poses
     ):
         camera = CAMERA_NAMES.get(number)
-        if camera not in cameras:
+        if camera is None or camera not in cameras:
             continue
         if image_pose is not None:  # the pose at the image's own time beats the frame's
             pose = transform_matrix(image_pose, f"{path} ({camera} at {timestamp})")
@@ -159,7 +159,7 @@ def cache_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:
             for timestamp, number, jpeg in zip(
                 *(batch.column(name).to_pylist() for name in (TIMESTAMP, CAMERA, IMAGE))
             ):
-                target = missing.get((timestamp, CAMERA_NAMES.get(number)))
+                target = missing.get((timestamp, CAMERA_NAMES.get(number, "")))
                 if target is not None:
                     write_bytes_atomically(target, jpeg)  # the cache is reused: never a short file in it
     except pa.ArrowException as error:

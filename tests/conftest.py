@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import pytest
 import torch
-
-from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 
 
 @pytest.fixture
@@ -23,8 +20,3 @@ def single_thread():
 @pytest.fixture
 def run_dir(tmp_path: Path) -> Path:
     return tmp_path / "outputs"
-
-
-@pytest.fixture
-def tiny() -> Callable[..., ContinualTrainerConfig]:
-    return tiny_config

@@ -31,7 +31,7 @@ from continual_nerf.dataparsers import waymo_v2
 from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
-from continual_nerf.method_configs import continual_ngp
+from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import quiet_config, train_like_ns_train
 
 DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
@@ -54,7 +54,7 @@ def tiny_config(
     """continual-ngp on CPU with tensorboard only (no viewer) and, by default, a small hash grid, eager (compiling
     costs more than the few steps of a test save; tests/test_performance.py checks compiled = eager)."""
     config = quiet_config(
-        continual_ngp.config,
+        CONTINUAL_NGP,
         output_dir,
         small=small_model,
         dataparser=dataparser,

@@ -181,8 +181,13 @@ def earlier_checkpoints(context: Context) -> Path:
     return context.earlier / "nerfstudio_models"
 
 
-def resume(message: Callable[[Path], str], load_dir: Callable[[Context], Path] = earlier_checkpoints,
-           load_step: Optional[int] = None, num_tasks: int = 2, **model_options) -> Build:
+def resume(
+    message: Callable[[Path], str],
+    load_dir: Callable[[Context], Path] = earlier_checkpoints,
+    load_step: Optional[int] = None,
+    num_tasks: int = 2,
+    **model_options,
+) -> Build:
     """The earlier run's config (with `num_tasks` and `model_options` changed) resuming from `load_dir`."""
 
     def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
@@ -215,15 +220,22 @@ def reuse_earlier_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]
 
 CORPUS = [
     BadInput("num-tasks-0", option("--pipeline.datamanager.num-tasks must be at least 1, got 0", num_tasks=0)),
-    BadInput("num-tasks-too-many",
-             option("--pipeline.datamanager.num-tasks 9 is too large for 12 frames", num_tasks=9)),
-    BadInput("budget-0-iterations", option("--pipeline.datamanager.iterations-per-task must be at least 1, got 0",
-                                           iterations_per_task=0)),
-    BadInput("budget-negative-seconds", option("--pipeline.datamanager.seconds-per-task must be positive, got -1.0",
-                                               seconds_per_task=-1.0)),
+    BadInput(
+        "num-tasks-too-many", option("--pipeline.datamanager.num-tasks 9 is too large for 12 frames", num_tasks=9)
+    ),
+    BadInput(
+        "budget-0-iterations",
+        option("--pipeline.datamanager.iterations-per-task must be at least 1, got 0", iterations_per_task=0),
+    ),
+    BadInput(
+        "budget-negative-seconds",
+        option("--pipeline.datamanager.seconds-per-task must be positive, got -1.0", seconds_per_task=-1.0),
+    ),
     BadInput("test-interval-1", option("--pipeline.datamanager.test-interval must be at least 2", test_interval=1)),
-    BadInput("rays-per-batch-0", option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0",
-                                        train_num_rays_per_batch=0)),
+    BadInput(
+        "rays-per-batch-0",
+        option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
+    ),
     BadInput("demo-no-frames", option("continual-demo --num-frames must be at least 1, got 0", {"num_frames": 0})),
     BadInput("demo-width-0", option("continual-demo --width must be at least 1, got 0", {"width": 0})),
     BadInput("missing-data-folder", missing_capture),
@@ -237,22 +249,40 @@ CORPUS = [
     BadInput("tum-missing-groundtruth", tum_without_groundtruth),
     BadInput("scannet-truncated-sens", truncated_sens),
     BadInput("waymo-corrupt-record", corrupt_tfrecord),
-    BadInput("resume-missing-folder",
-             resume(lambda d: f"--load-dir {d}: no such folder", lambda context: context.scratch / "gone")),
-    BadInput("resume-no-checkpoint",
-             resume(lambda d: f"--load-dir {d}: holds no step-*.ckpt checkpoint", empty_folder)),
-    BadInput("resume-absent-step",
-             resume(lambda d: f"--load-step 2: {d} has checkpoints of steps [1, 3]", load_step=2)),
-    BadInput("resume-truncated-checkpoint", resume(lambda d: f"{d / 'step-000000001.ckpt'}: not a readable checkpoint",
-                                                   truncated_checkpoint)),
-    BadInput("resume-other-num-tasks", resume(
-        lambda d: f"{d / 'step-000000001.ckpt'}: --pipeline.datamanager.num-tasks: the checkpoint was trained with 2, "
-        "this run 3", load_step=1, num_tasks=3)),
-    BadInput("resume-other-model-size", resume(
-        lambda d: f"{d / 'step-000000001.ckpt'}: does not fit this run (size mismatch for", load_step=1,
-        log2_hashmap_size=13)),
-    BadInput("resume-finished-run",
-             resume(lambda d: f"{d / 'step-000000003.ckpt'}: its run already trained all 2 tasks")),
+    BadInput(
+        "resume-missing-folder",
+        resume(lambda d: f"--load-dir {d}: no such folder", lambda context: context.scratch / "gone"),
+    ),
+    BadInput(
+        "resume-no-checkpoint", resume(lambda d: f"--load-dir {d}: holds no step-*.ckpt checkpoint", empty_folder)
+    ),
+    BadInput(
+        "resume-absent-step", resume(lambda d: f"--load-step 2: {d} has checkpoints of steps [1, 3]", load_step=2)
+    ),
+    BadInput(
+        "resume-truncated-checkpoint",
+        resume(lambda d: f"{d / 'step-000000001.ckpt'}: not a readable checkpoint", truncated_checkpoint),
+    ),
+    BadInput(
+        "resume-other-num-tasks",
+        resume(
+            lambda d: f"{d / 'step-000000001.ckpt'}: --pipeline.datamanager.num-tasks: the checkpoint was trained with 2, "
+            "this run 3",
+            load_step=1,
+            num_tasks=3,
+        ),
+    ),
+    BadInput(
+        "resume-other-model-size",
+        resume(
+            lambda d: f"{d / 'step-000000001.ckpt'}: does not fit this run (size mismatch for",
+            load_step=1,
+            log2_hashmap_size=13,
+        ),
+    ),
+    BadInput(
+        "resume-finished-run", resume(lambda d: f"{d / 'step-000000003.ckpt'}: its run already trained all 2 tasks")
+    ),
     BadInput("run-folder-of-an-earlier-run", reuse_earlier_folder),
 ]
 
@@ -275,8 +305,11 @@ def own_event_writers() -> Iterator[None]:
 
 
 def digest(folder: Path) -> Dict[str, str]:
-    return {str(path.relative_to(folder)): hashlib.sha256(path.read_bytes()).hexdigest()
-            for path in sorted(folder.rglob("*")) if path.is_file()}
+    return {
+        str(path.relative_to(folder)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(folder.rglob("*"))
+        if path.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -356,13 +389,30 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     checkpoints = truncated_checkpoint(context)
     tasks = ["--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "2"]
     return [
-        ("num-tasks-0", ["--pipeline.datamanager.num-tasks", "0", *demo],
-         "--pipeline.datamanager.num-tasks must be at least 1, got 0"),
+        (
+            "num-tasks-0",
+            ["--pipeline.datamanager.num-tasks", "0", *demo],
+            "--pipeline.datamanager.num-tasks must be at least 1, got 0",
+        ),
         ("truncated-image-released-mid-run", [*tasks, "continual-nerfstudio", "--data", str(capture)], image_line),
-        ("resume-truncated-checkpoint",
-         [*tasks, "--load-dir", str(checkpoints), "continual-demo", "--data", str(DEMO_CACHE), "--num-frames", "16",
-          "--width", "24", "--height", "18"],
-         f"{checkpoints / 'step-000000001.ckpt'}: not a readable checkpoint ("),
+        (
+            "resume-truncated-checkpoint",
+            [
+                *tasks,
+                "--load-dir",
+                str(checkpoints),
+                "continual-demo",
+                "--data",
+                str(DEMO_CACHE),
+                "--num-frames",
+                "16",
+                "--width",
+                "24",
+                "--height",
+                "18",
+            ],
+            f"{checkpoints / 'step-000000001.ckpt'}: not a readable checkpoint (",
+        ),
     ]
 
 
@@ -372,8 +422,12 @@ def test_ns_train_prints_one_line_no_traceback_and_exits_non_zero(earlier: Path,
     # started together: each one spends most of its time importing nerfstudio
     logs = {name: (tmp_path / f"{name}.log").open("w+") for name, _, _ in cases}
     processes = {
-        name: subprocess.Popen(ns_train_command(earlier.parents[2], f"cli-{name}", options, []),
-                               stdout=subprocess.DEVNULL, stderr=logs[name], env=SUBPROCESS_ENV)
+        name: subprocess.Popen(
+            ns_train_command(earlier.parents[2], f"cli-{name}", options, []),
+            stdout=subprocess.DEVNULL,
+            stderr=logs[name],
+            env=SUBPROCESS_ENV,
+        )
         for name, options, _ in cases
     }
     for name, _, expected in cases:

@@ -76,7 +76,8 @@ def test_a_kill_during_a_save_leaves_the_last_complete_checkpoint_and_the_run_re
         "model, oracle, optimizers, task progress and RNGs all come back: the resumed run is the uninterrupted one"
     )
     assert sorted(path.name for path in resumed.get_checkpoint_dir().iterdir()) == [
-        "step-000000007.ckpt", "step-000000011.ckpt"
+        "step-000000007.ckpt",
+        "step-000000011.ckpt",
     ]
 
 
@@ -108,6 +109,10 @@ def test_temporary_checkpoint_files_live_outside_the_checkpoint_folder(run_dir, 
     monkeypatch.setattr(os, "replace", recording_replace)
     trainer.save_checkpoint(0)
     # a SIGKILL mid-save leaves the temporary file behind: ns-eval and --load-dir parse every name in the folder
-    assert renamed == [(config.get_base_dir() / f".step-000000000.ckpt.partial-{os.getpid()}",
-                        config.get_checkpoint_dir() / "step-000000000.ckpt")]
+    assert renamed == [
+        (
+            config.get_base_dir() / f".step-000000000.ckpt.partial-{os.getpid()}",
+            config.get_checkpoint_dir() / "step-000000000.ckpt",
+        )
+    ]
     assert [path.name for path in config.get_checkpoint_dir().iterdir()] == ["step-000000000.ckpt"]

@@ -16,12 +16,16 @@ def test_replay_keeps_task_1_that_training_without_replay_forgets(run_dir, capsy
     parser = demo_parser(num_frames=24, width=32, height=24)
     first_task_psnr = {}
     for replay in (True, False):
-        trainer = train(tiny_config(run_dir, parser, num_tasks=3, iterations_per_task=80, rays_per_batch=512, replay=replay))
+        trainer = train(
+            tiny_config(run_dir, parser, num_tasks=3, iterations_per_task=80, rays_per_batch=512, replay=replay)
+        )
         first_task_psnr[replay] = trainer.pipeline.accuracy.psnr[-1][0]
     margin = first_task_psnr[True] - first_task_psnr[False]
     with capsys.disabled():
-        print(f"\ntask 1 PSNR after 3 tasks: replay {first_task_psnr[True]:.2f} dB, "
-              f"no replay {first_task_psnr[False]:.2f} dB, margin {margin:.2f} dB")
+        print(
+            f"\ntask 1 PSNR after 3 tasks: replay {first_task_psnr[True]:.2f} dB, "
+            f"no replay {first_task_psnr[False]:.2f} dB, margin {margin:.2f} dB"
+        )
     assert margin > 1.0
 
 
@@ -54,17 +58,35 @@ def test_ns_eval_and_ns_render_work_on_the_run(finished_run, tmp_path):
     output = tmp_path / "eval.json"
     subprocess.run(
         [str(bin_dir / "ns-eval"), "--load-config", str(finished_run / "config.yml"), "--output-path", str(output)],
-        check=True, capture_output=True, text=True, timeout=300,
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     results = json.loads(output.read_text())["results"]
     assert results["psnr"] > 5.0 and 0.0 < results["ssim"] <= 1.0
     render = subprocess.run(
-        [str(bin_dir / "ns-render"), "dataset", "--load-config", str(finished_run / "config.yml"),
-         "--output-path", str(tmp_path / "renders"), "--split", "train", "--rendered-output-names", "rgb"],
-        capture_output=True, text=True, timeout=300,
+        [
+            str(bin_dir / "ns-render"),
+            "dataset",
+            "--load-config",
+            str(finished_run / "config.yml"),
+            "--output-path",
+            str(tmp_path / "renders"),
+            "--split",
+            "train",
+            "--rendered-output-names",
+            "rgb",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert render.returncode == 0, render.stderr[-2000:]
-    assert len(list((tmp_path / "renders").rglob("*.jpg")) + list((tmp_path / "renders").rglob("*.png"))) == 14, "the 14 training frames"
+    assert len(list((tmp_path / "renders").rglob("*.jpg")) + list((tmp_path / "renders").rglob("*.png"))) == 14, (
+        "the 14 training frames"
+    )
 
 
 def test_a_wall_clock_budget_per_task_ends_each_task_and_the_run(run_dir):

@@ -48,7 +48,9 @@ def test_same_seed_same_split_and_losses_other_seed_other_losses(run_dir, monkey
     split_again, losses_again = first_losses(run_dir, monkeypatch, seed=42)
     _, other_seed_losses = first_losses(run_dir, monkeypatch, seed=43, steps=2)
     assert len(losses) == 20
-    assert all(np.array_equal(a, b) for a, b in zip(split.train_frames + split.test_frames,
-                                                     split_again.train_frames + split_again.test_frames))
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(split.train_frames + split.test_frames, split_again.train_frames + split_again.test_frames)
+    )
     assert losses == losses_again, "bit-identical on CPU"
     assert abs(other_seed_losses[0] - losses[0]) > 1e-3 * losses[0], "the seed does drive initialisation and rays"

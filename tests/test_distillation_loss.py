@@ -20,7 +20,9 @@ def test_the_two_terms_add_up_to_the_mean_squared_error_of_the_batch():
     pred, target = torch.rand(64, 3, generator=generator), torch.rand(64, 3, generator=generator)
     is_replay = torch.rand(64, generator=generator) < 0.7
     terms = distillation_loss(pred, target, is_replay)
-    torch.testing.assert_close(terms["rgb_loss"] + terms["distillation_loss"], torch.nn.functional.mse_loss(pred, target))
+    torch.testing.assert_close(
+        terms["rgb_loss"] + terms["distillation_loss"], torch.nn.functional.mse_loss(pred, target)
+    )
 
 
 def test_a_batch_without_replay_has_a_zero_distillation_term_and_gradients_reach_every_ray():

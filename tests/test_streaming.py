@@ -18,8 +18,9 @@ from helpers import demo_parser, tiny_config
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.dataparsers.stream_dataparser import CaptureWatcher, StreamDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.streaming.capture_folder import CaptureWatcher
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
@@ -121,11 +122,18 @@ def stream_config(run_dir: Path, capture: Path, idle: str) -> ContinualTrainerCo
     )
     config = tiny_config(run_dir, parser, iterations_per_task=BUDGET, rays_per_batch=64)
     config.pipeline.datamanager = StreamingDataManagerConfig(
-        dataparser=parser, iterations_per_task=BUDGET, train_num_rays_per_batch=64, test_interval=4,
+        dataparser=parser,
+        iterations_per_task=BUDGET,
+        train_num_rays_per_batch=64,
+        test_interval=4,
         idle=idle,  # type: ignore[arg-type]
     )
     config.pipeline.model = dataclasses.replace(
-        config.pipeline.model, num_levels=4, log2_hashmap_size=10, max_res=32, num_nerf_samples_per_ray=8,
+        config.pipeline.model,
+        num_levels=4,
+        log2_hashmap_size=10,
+        max_res=32,
+        num_nerf_samples_per_ray=8,
         num_proposal_samples_per_ray=(16,),
     )
     config.method_name = "continual-ngp-stream"
@@ -174,11 +182,16 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
 
 def test_replay_command_writes_the_protocol_and_the_stream_reads_back_the_same_cameras(tmp_path):
     script = Path(sys.executable).with_name("continual-nerf-replay-capture")
-    assert subprocess.run([script, "--help"], capture_output=True).returncode == 0, "installed by `pip install -e .`"
+    assert subprocess.run([script, "--help"], check=False, capture_output=True).returncode == 0, (
+        "installed by `pip install -e .`"
+    )
     capture = tmp_path / "capture"
     replay(ReplayCaptureConfig(output=capture, fps=0, task_every=5, dataparser=demo_parser(num_frames=12)))
     assert sorted(p.name for p in capture.iterdir() if p.suffix != ".json") == [
-        "000004.task", "000009.task", "000011.end", "images"
+        "000004.task",
+        "000009.task",
+        "000011.end",
+        "images",
     ]
     parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none").setup()
     outputs = parser.get_dataparser_outputs(split="train")
@@ -254,21 +267,22 @@ def test_a_capture_that_ends_before_its_first_task_is_an_error(tmp_path):
         StreamDataParserConfig(data=capture).setup().get_dataparser_outputs(split="train")
 
 
-
 def test_next_task_now_closes_the_task_being_captured(tmp_path):
     capture = tmp_path / "capture"
-    replay(ReplayCaptureConfig(output=capture, fps=0, task_every=3, end_marker=False, dataparser=demo_parser(num_frames=7)))
+    replay(
+        ReplayCaptureConfig(output=capture, fps=0, task_every=3, end_marker=False, dataparser=demo_parser(num_frames=7))
+    )
     parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none")
     config = StreamingDataManagerConfig(dataparser=parser, iterations_per_task=10**6, replay=False, test_interval=2)
     datamanager = config.setup(device="cpu", test_mode="val")
     lock = threading.Lock()
-    assert datamanager.tasks_available() == 2 and len(datamanager.dataparser.collecting) == 1
+    assert datamanager.tasks_available() == 2 and len(datamanager.capture.collecting) == 1
     assert datamanager.await_next_task(requested=False, train_lock=lock), "task 2 has arrived"
     datamanager.release(1)
     assert not datamanager.capture_finished, "the task being captured will follow"
     assert not datamanager.await_next_task(requested=True, train_lock=lock), "one frame is too few to close a task"
     write_frame(capture, 7, Path(demo_frames(num_frames=8).image_filenames[7]), frame_json(demo_frames(8).cameras, 7))
-    datamanager.dataparser.poll()
+    datamanager.capture.poll()
     assert datamanager.await_next_task(requested=True, train_lock=lock), "Next task now closes frames 6 and 7"
     assert datamanager.tasks_available() == 3
     datamanager.release(2)

@@ -27,8 +27,15 @@ from continual_nerf.viewer.task_cameras import task_colour
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=1200,800",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--window-size=1200,800",
     "--remote-debugging-port=0",
 ]
 """Headless, offline, and with DevTools on a port Chromium picks (it writes it to <profile>/DevToolsActivePort)."""
@@ -50,7 +57,8 @@ class DevTools:
     def __init__(self, profile: Path) -> None:
         self.process = subprocess.Popen(
             [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
         )
         port = self._devtools_port(profile / "DevToolsActivePort")
         pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
@@ -132,8 +140,11 @@ def chromium(tmp_path: Path) -> Iterator[DevTools]:
 def live_run(tmp_path: Path) -> Iterator[ContinualTrainer]:
     """A CPU run with the viewer on 127.0.0.1, training in a thread; tasks end only when asked to."""
     config = tiny_config(
-        tmp_path / "outputs", demo_parser(num_frames=24, width=32, height=24), num_tasks=NUM_TASKS,
-        iterations_per_task=10**6, rays_per_batch=64,
+        tmp_path / "outputs",
+        demo_parser(num_frames=24, width=32, height=24),
+        num_tasks=NUM_TASKS,
+        iterations_per_task=10**6,
+        rays_per_batch=64,
     )
     config.vis = "viewer"
     config.viewer.websocket_port = free_port()
@@ -193,10 +204,14 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(live_run, chromium
     chromium.click_button("Next task now")
     wait_for("the panel to show task 2", lambda: chromium.input_value("Task") == f"2 of {NUM_TASKS}")
     # the new task's images go into its frustums once its pixels are loaded, at its first batch
-    wait_for("task 2's frustums with images", lambda: all(
-        message.image_binary is not None
-        for name, message in frustums(trainer).items() if int(name.split("_")[-1]) in frames_of[1]
-    ))
+    wait_for(
+        "task 2's frustums with images",
+        lambda: all(
+            message.image_binary is not None
+            for name, message in frustums(trainer).items()
+            if int(name.split("_")[-1]) in frames_of[1]
+        ),
+    )
     shown = frustums(trainer)
     assert {int(name.split("_")[-1]) for name in shown} == frames_of[0] | frames_of[1], "tasks 1 and 2, not 3"
     for name, message in shown.items():

@@ -28,6 +28,9 @@ def _buffer_name(parameter_name: str) -> str:
 class EWCPenalty(nn.Module):
     """Fisher information and reference values of named parameters, as buffers so that checkpoints hold them."""
 
+    num_consolidated: Tensor
+    """Tasks consolidated so far (a buffer)."""
+
     def __init__(self, parameters: Dict[str, Tensor]) -> None:
         super().__init__()
         self.fisher = nn.Module()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Tuple, Type
+from typing import Dict, Literal, Tuple, Type, cast
 
 import torch
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
@@ -73,7 +73,9 @@ class ContinualNeRFModel(NeRFModel):
             base_mlp_layer_width=self.config.base_mlp_layer_width,
             head_mlp_num_layers=self.config.head_mlp_num_layers,
             head_mlp_layer_width=self.config.head_mlp_layer_width,
-            skip_connections=self.config.skip_connections,
+            skip_connections=cast(
+                Tuple[int], self.config.skip_connections
+            ),  # nerfstudio annotates any length as Tuple[int]
         )
 
     def get_outputs(self, ray_bundle) -> Dict[str, torch.Tensor]:

@@ -7,17 +7,22 @@ from pathlib import Path
 from typing import Any, Literal
 
 from nerfstudio.configs.method_configs import method_configs as nerfstudio_methods
+from nerfstudio.engine.trainer import TrainerConfig
 
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import continual_ngp
+from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import quiet_config
 
 Device = Literal["cpu", "cuda"]
 
 
 def on_demo(
-    config: ContinualTrainerConfig, demo: ContinualDemoDataParserConfig, device: Device, output_dir: Path, **options: Any
+    config: ContinualTrainerConfig,
+    demo: ContinualDemoDataParserConfig,
+    device: Device,
+    output_dir: Path,
+    **options: Any,
 ) -> ContinualTrainerConfig:
     """A quiet copy of `config` training on the `demo` scene, with datamanager options."""
     return quiet_config(config, output_dir, device=device, dataparser=demo, **options)
@@ -28,8 +33,10 @@ def nerfacto_on_demo(
 ) -> ContinualTrainerConfig:
     """nerfstudio's registered nerfacto (model and optimizers) fed by the same datamanager, all images open at once."""
     nerfacto = nerfstudio_methods["nerfacto"]
-    config = on_demo(continual_ngp.config, demo, device, output_dir, replay=False, joint=True, **datamanager)
+    assert isinstance(nerfacto, TrainerConfig)
+    config = on_demo(CONTINUAL_NGP, demo, device, output_dir, replay=False, joint=True, **datamanager)
     config.method_name = "nerfacto"
-    config.pipeline.model = copy.deepcopy(nerfacto.pipeline.model)
+    # nerfacto's model in the continual pipeline: a benchmark reference, not a registered method
+    config.pipeline.model = copy.deepcopy(nerfacto.pipeline.model)  # type: ignore[assignment]
     config.optimizers = copy.deepcopy(nerfacto.optimizers)
     return config

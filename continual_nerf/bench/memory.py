@@ -27,7 +27,7 @@ from torch._subclasses.fake_tensor import FakeTensor
 from continual_nerf.bench.demo_runs import on_demo
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import continual_ngp
+from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import set_up_like_ns_train
 
 MIB = 2**20
@@ -125,7 +125,7 @@ class MemoryBenchmark:
     def trainer_config(self) -> ContinualTrainerConfig:
         demo = ContinualDemoDataParserConfig(data=self.data, num_frames=self.num_frames)
         options = {"num_tasks": self.num_tasks, "iterations_per_task": self.iterations_per_task}
-        return on_demo(continual_ngp.config, demo, self.device, self.output_dir, **options)
+        return on_demo(CONTINUAL_NGP, demo, self.device, self.output_dir, **options)
 
     def main(self) -> None:
         records = train_recording_memory(self.trainer_config())

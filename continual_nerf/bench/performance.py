@@ -19,13 +19,11 @@ import json
 import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal
 
 import matplotlib
-import torch
 import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -35,9 +33,9 @@ from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo
 from continual_nerf.bench.memory import MIB, TaskMemory
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.core.evaluation import evaluate_frames
-from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE
 from continual_nerf.recipes import set_up_like_ns_train
 
 matplotlib.use("Agg")  # the PNG only; no display needed
@@ -160,10 +158,10 @@ class PerformanceBenchmark:
             "iterations_per_task": self.curve_iterations_per_task,
             "train_num_rays_per_batch": self.rays_per_batch,
         }
-        configs = {"continual-ngp": on_demo(continual_ngp.config, demo, self.device, output_dir, **options)}
+        configs = {"continual-ngp": on_demo(CONTINUAL_NGP, demo, self.device, output_dir, **options)}
         if self.lever_reference:
             configs.update(lever_references(configs["continual-ngp"]))
-        configs["continual-ngp-incre"] = on_demo(continual_ngp_incre.config, demo, self.device, output_dir, **options)
+        configs["continual-ngp-incre"] = on_demo(CONTINUAL_NGP_INCRE, demo, self.device, output_dir, **options)
         configs["nerfacto (all images at once)"] = nerfacto_on_demo(demo, self.device, output_dir, **options)
         return configs
 

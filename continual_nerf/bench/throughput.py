@@ -24,7 +24,7 @@ from rich.table import Table
 from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import continual_ngp, continual_ngp_incre
+from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE
 from continual_nerf.recipes import set_up_like_ns_train
 
 REPLAY, REPLAY_OFF, NERFACTO = "continual-ngp", "continual-ngp-incre", "nerfacto"
@@ -93,8 +93,8 @@ class ThroughputBenchmark:
         demo = ContinualDemoDataParserConfig(data=self.data)
         options = {"num_tasks": self.num_tasks, "train_num_rays_per_batch": self.rays_per_batch}
         return {
-            REPLAY: on_demo(continual_ngp.config, demo, self.device, output_dir, **options),
-            REPLAY_OFF: on_demo(continual_ngp_incre.config, demo, self.device, output_dir, **options),
+            REPLAY: on_demo(CONTINUAL_NGP, demo, self.device, output_dir, **options),
+            REPLAY_OFF: on_demo(CONTINUAL_NGP_INCRE, demo, self.device, output_dir, **options),
             NERFACTO: nerfacto_on_demo(demo, self.device, output_dir, **options),
         }
 

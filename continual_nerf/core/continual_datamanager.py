@@ -162,7 +162,9 @@ class ContinualDataManager(VanillaDataManager):
 
     def _image_scale(self) -> float:
         """The datamanager's resolution scale times the dataparser's downscale (capture parsers set one)."""
-        return self.config.camera_res_scale_factor * self.train_dataparser_outputs.metadata.get("image_scale_factor", 1.0)
+        return self.config.camera_res_scale_factor * self.train_dataparser_outputs.metadata.get(
+            "image_scale_factor", 1.0
+        )
 
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
@@ -255,8 +257,10 @@ class ContinualDataManager(VanillaDataManager):
         start, _ = self.train_dataset.open_task_pixel_range()
         is_replay = flat < start
         current = ~is_replay
+        pixels = self.train_dataset.task_pixels
+        assert pixels is not None, "the open task's pixels are read above"
         image = torch.empty((len(flat), 3), device=self.device)
-        image[current] = self.train_dataset.task_pixels[flat[current] - start].to(self.device)
+        image[current] = pixels[flat[current] - start].to(self.device)
         return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
 
     def _eval_frame(self, step: int) -> int:

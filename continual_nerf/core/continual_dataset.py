@@ -15,7 +15,6 @@ from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import DatasetError, first_line
 
-
 IMAGE_MODES = ("L", "RGB", "RGBA")
 """PIL modes of the images nerfstudio's InputDataset decodes correctly."""
 
@@ -76,6 +75,7 @@ class ContinualDataset(InputDataset):
 
     def open_task_pixel_range(self) -> tuple[int, int]:
         """Flat pixel numbers [start, end) covered by the open task."""
+        assert self.open_task is not None, "no task is open"
         frames = self.frames_of_task(self.open_task)
         return int(self.pixel_offsets[frames[0]]), int(self.pixel_offsets[frames[-1] + 1])
 

@@ -127,7 +127,9 @@ class ContinualPipeline(VanillaPipeline):
             image = batch["image"]
             image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)]).to(image.dtype)
 
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
         trainer = training_callback_attributes.trainer
         assert trainer is not None
         return super().get_training_callbacks(training_callback_attributes) + [

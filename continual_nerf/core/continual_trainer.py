@@ -24,7 +24,7 @@ from continual_nerf.checkpoints import (
 )
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
-from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
 from continual_nerf.nerfstudio_compat import set_resume_step
 from continual_nerf.validated_config import ValidatedConfig
@@ -39,6 +39,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     """TrainerConfig whose max_num_iterations follows from num_tasks x the per-task budget unless it is given."""
 
     _target: Type = field(default_factory=lambda: ContinualTrainer)
+    pipeline: ContinualPipelineConfig = field(default_factory=ContinualPipelineConfig)
+    """The continual pipeline: the task split, its datamanager, the model and the replay oracle."""
     max_num_iterations: Optional[int] = None  # type: ignore[assignment]
     """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False

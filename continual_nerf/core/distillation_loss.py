@@ -7,7 +7,9 @@ from typing import Dict
 import torch
 
 
-def distillation_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, is_replay: torch.Tensor) -> Dict[str, torch.Tensor]:
+def distillation_loss(
+    pred_rgb: torch.Tensor, target_rgb: torch.Tensor, is_replay: torch.Tensor
+) -> Dict[str, torch.Tensor]:
     """Split the squared error of a batch into its two terms of Eq. 4.
 
     `target_rgb` holds pixels for current-task rays and the oracle's colours for replayed rays.

@@ -81,7 +81,9 @@ class ContinualNGPModel(NerfactoModel):
         if self.config.compile:
             compile_model(self)
         if self.config.detach_sample_positions and not self.config.predict_normals:
-            stop_input_gradients(self.field.mlp_base)  # outside the compiled forward, so its graph has no input gradient
+            stop_input_gradients(
+                self.field.mlp_base
+            )  # outside the compiled forward, so its graph has no input gradient
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)

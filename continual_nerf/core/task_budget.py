@@ -61,7 +61,11 @@ class TaskBudget:
 
     def state(self) -> Dict[str, Any]:
         """What a checkpoint keeps: the progress, not the options (those come from the resumed run's config)."""
-        return {"iterations_done": self.iterations_done, "seconds_done": self.seconds_done, "total_seconds": self.total_seconds}
+        return {
+            "iterations_done": self.iterations_done,
+            "seconds_done": self.seconds_done,
+            "total_seconds": self.total_seconds,
+        }
 
     def load_state(self, state: Dict[str, Any]) -> None:
         self.iterations_done = int(state["iterations_done"])

@@ -14,6 +14,7 @@ import matplotlib
 matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 PAPER_NAMES = {
     "continual-ngp": "Ours",
@@ -50,7 +51,7 @@ def forgetting(run: Run) -> Dict[str, Any]:
         return summary
     per_task = [run["psnr"][j][j] - final[j] for j in range(len(final) - 1)]
     summary["per_task"] = [_r2(value) for value in per_task]
-    summary["backward_transfer"] = _r2(-np.mean(per_task)) if per_task else None
+    summary["backward_transfer"] = _r2(-float(np.mean(per_task))) if per_task else None
     return summary
 
 
@@ -122,7 +123,7 @@ def plot_fig6(fig6: Dict[str, Any], path: Path) -> None:
     axes.set_xlabel("tasks trained")
     axes.set_ylabel(f"PSNR of task {fig6['task']}'s test frames (dB)")
     axes.set_title(f"Fig. 6: task {fig6['task']} over the course of training")
-    axes.xaxis.get_major_locator().set_params(integer=True)
+    axes.xaxis.set_major_locator(MaxNLocator(integer=True))
     axes.grid(alpha=0.3)
     axes.legend(fontsize="small")
     _save(figure, path)

@@ -116,7 +116,9 @@ class RunMonitor:
             "ground_truth": None,
         }
         self._seconds_at_task_start = 0.0
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration))
+        trainer.callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration)
+        )
 
     def _after_iteration(self, step: int) -> None:
         pipeline = self.pipeline

@@ -25,8 +25,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
-from continual_nerf.dataparsers.stream_dataparser import StreamDataParser, StreamDataParserConfig, StreamFrame
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParser, StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.streaming.capture_folder import CaptureTasks, StreamFrame
 
 
 @dataclass
@@ -91,19 +92,24 @@ class StreamingDataManager(ContinualDataManager):
         super().__init__(config, *args, **kwargs)
 
     @property
+    def capture(self) -> CaptureTasks:
+        """The capture folder's frames, cut into tasks as they arrive."""
+        return self.dataparser.capture
+
+    @property
     def num_tasks(self) -> int:
         """Tasks released so far (the datasets hold their frames)."""
         return len(self._train_frames)
 
     def tasks_available(self) -> int:
         """Tasks complete in the capture folder, at most --max-tasks."""
-        count = len(self.dataparser.tasks)
+        count = len(self.capture.tasks)
         return min(count, self.config.max_tasks) if self.config.max_tasks else count
 
     @property
     def capture_finished(self) -> bool:
         """No task will follow the available ones: the capture ended, or --max-tasks is reached."""
-        return self.dataparser.ended or 0 < self.config.max_tasks <= len(self.dataparser.tasks)
+        return self.capture.ended or 0 < self.config.max_tasks <= len(self.capture.tasks)
 
     def _next_task_ready(self) -> bool:
         return self.tasks_available() > self.released_task + 1
@@ -116,15 +122,15 @@ class StreamingDataManager(ContinualDataManager):
         self._test_frames.append(split.test_frames[0] + start)
         self.frames.extend(frames)
         self.task_split = TaskSplit(train_frames=tuple(self._train_frames), test_frames=tuple(self._test_frames))
-        self.train_dataparser_outputs = self.dataparser.outputs(self.frames)
+        self.train_dataparser_outputs = self.capture.outputs(self.frames)
 
     def create_train_dataset(self) -> ContinualDataset:
         if not self.frames:
             # training starts on the first task; ns-eval, ns-render and ns-viewer see every task there is
             if self.test_mode != "val":
-                self.dataparser.poll()
+                self.capture.poll()
             for task in range(1 if self.test_mode == "val" else self.tasks_available()):
-                self._append_task(self.dataparser.tasks[task])
+                self._append_task(self.capture.tasks[task])
         return ContinualDataset(
             subset_outputs(self.train_dataparser_outputs, self.task_split.all_train_frames()),
             self.task_split.train_task_of_frame(),
@@ -135,7 +141,7 @@ class StreamingDataManager(ContinualDataManager):
     def release(self, task: int) -> None:
         """Grow the datasets by the tasks up to `task`, then release it as the batch mode does."""
         while self.num_tasks <= task:
-            self._append_task(self.dataparser.tasks[self.num_tasks])
+            self._append_task(self.capture.tasks[self.num_tasks])
         self.train_dataset = self.create_train_dataset()
         self.eval_dataset = self.create_eval_dataset()
         self.setup_eval()
@@ -155,8 +161,8 @@ class StreamingDataManager(ContinualDataManager):
 
     def _poll_capture(self, step: int) -> None:
         """Read new frames every --poll-seconds."""
-        if time.monotonic() - self._last_poll >= self.dataparser.config.poll_seconds:
-            self.dataparser.poll()
+        if time.monotonic() - self._last_poll >= self.capture.config.poll_seconds:
+            self.capture.poll()
             self._last_poll = time.monotonic()
 
     def await_next_task(self, requested: bool, train_lock: Lock) -> bool:
@@ -166,13 +172,15 @@ class StreamingDataManager(ContinualDataManager):
         --idle refine, say so once and let the released tasks train on.
         """
         if requested and not self._next_task_ready():
-            self.dataparser.close_task()
+            self.capture.close_task()
         if self._next_task_ready() or self.capture_finished:
             return True
         if self.config.idle == "wait":
-            CONSOLE.log(f"Task {self.released_task + 1}: budget spent, waiting for frames in {self.dataparser.config.data}")
+            CONSOLE.log(
+                f"Task {self.released_task + 1}: budget spent, waiting for frames in {self.capture.config.data}"
+            )
             with released(train_lock):  # the viewer renders under the train lock
-                self.dataparser.wait_until(lambda: self._next_task_ready() or self.capture_finished)
+                self.capture.wait_until(lambda: self._next_task_ready() or self.capture_finished)
             self._last_poll = time.monotonic()
             return True
         if not self._idle_reported:
@@ -182,7 +190,7 @@ class StreamingDataManager(ContinualDataManager):
 
     def waiting_text(self) -> str:
         doing = "refining" if self.config.idle == "refine" else "waiting"
-        return f"budget spent, {doing} until the next task arrives ({len(self.dataparser.collecting)} frames so far)"
+        return f"budget spent, {doing} until the next task arrives ({len(self.capture.collecting)} frames so far)"
 
     def schedule(self) -> Dict[str, int]:
         # the capture folder, not options, decides the tasks and their frames

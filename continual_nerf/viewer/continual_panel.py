@@ -32,7 +32,7 @@ PANEL_LABEL = "Continual learning"
 
 
 def task_text(status: ContinualStatus) -> str:
-    """"k of N"; while a capture is still running, N counts the task being captured and may grow."""
+    """ "k of N"; while a capture is still running, N counts the task being captured and may grow."""
     text = f"{status.current_task + 1} of {status.known_tasks}"
     return f"{text}+ (capture running)" if status.capture_running else text
 
