@@ -416,6 +416,7 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     ]
 
 
+@pytest.mark.slow
 def test_ns_train_prints_one_line_no_traceback_and_exits_non_zero(earlier: Path, tmp_path):
     before = digest(earlier)
     cases = cli_cases(Context(scratch=tmp_path, earlier=earlier))

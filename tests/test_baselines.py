@@ -30,6 +30,7 @@ def test_every_paper_method_is_registered_with_nerfstudio():
     assert set(PAPER_TABLE1) <= set(continual_methods())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", PAPER_TABLE1)
 def test_method_trains_two_tasks_and_writes_its_accuracy_matrix(run_dir, method):
     config = tiny_method(method, run_dir)

@@ -51,6 +51,7 @@ def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
     monkeypatch.setattr(torch, "save", save)
 
 
+@pytest.mark.slow
 def test_a_kill_during_a_save_leaves_the_last_complete_checkpoint_and_the_run_resumes_exactly(
     run_dir, monkeypatch, single_thread
 ):

@@ -11,6 +11,8 @@ from helpers import demo_parser, tiny_config, train
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
+
 
 def test_replay_keeps_task_1_that_training_without_replay_forgets(run_dir, capsys):
     parser = demo_parser(num_frames=24, width=32, height=24)

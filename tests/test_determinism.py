@@ -14,6 +14,8 @@ from nerfstudio.scripts.train import train_loop
 from continual_nerf.core.continual_trainer import ContinualTrainer
 from continual_nerf.core.task_split import TaskSplit
 
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
+
 
 @pytest.fixture(autouse=True)
 def restore_algorithms():

@@ -12,6 +12,8 @@ from helpers import DEMO_CACHE, demo_parser
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.experiments.cli import ExperimentsConfig
 
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
+
 METHODS = ("continual-ngp", "continual-ngp-incre", "continual-nerf-joint")
 
 

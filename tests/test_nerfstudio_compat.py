@@ -74,6 +74,7 @@ def test_seed_like_ns_train_seeds_python_numpy_and_torch():
     assert drawn == (random.random(), np.random.rand(), torch.rand(1).item())
 
 
+@pytest.mark.slow
 def test_a_resumed_run_ends_at_the_same_step_as_the_uninterrupted_one(tmp_path):
     """Depends on nerfstudio 1.1.5 counting max_num_iterations from the resumed step (set_resume_step)."""
     parser = demo_parser()

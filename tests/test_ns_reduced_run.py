@@ -17,6 +17,8 @@ from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.experiments.plan import continual_methods
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
 
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
+
 METHODS = sorted(continual_methods())
 
 

@@ -230,11 +230,12 @@ def test_unknown_order_is_an_option_error(numbered):
     )
 
 
+@pytest.mark.slow
 def test_short_continual_run_on_a_transforms_json_capture(numbered, run_dir):
     config = tiny_config(run_dir, OrderedCaptureDataParserConfig(data=numbered), num_tasks=2, iterations_per_task=2)
     trainer = train(config)
     datamanager = trainer.pipeline.datamanager
-    assert datamanager.num_tasks == 2 and datamanager.current_task == 1
+    assert datamanager.num_tasks == 2 and trainer.pipeline.task.current == 1
     frames = datamanager.train_dataset.image_filenames + datamanager.eval_dataset.image_filenames
     assert sorted(path.name for path in frames) == sorted(f"frame_{number}.png" for number in NUMBERS)
     assert (trainer.base_dir / "dataparser_transforms.json").is_file()

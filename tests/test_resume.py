@@ -9,12 +9,15 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.task_split import split_into_tasks
+
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
 
 NUM_FRAMES, WIDTH, HEIGHT = 18, 24, 18
 NUM_TASKS, ITERATIONS_PER_TASK, STEPS_PER_SAVE = 3, 20, 25

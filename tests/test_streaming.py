@@ -149,6 +149,7 @@ def frames_of_tasks(datamanager) -> List[List[str]]:
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("idle", ["refine", "wait"])
 def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_path, idle):
     capture = tmp_path / "capture"
@@ -180,6 +181,7 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
         assert min(iterations_per_task[:3]) >= 2 * BUDGET, "refining went on while the next frames were awaited"
 
 
+@pytest.mark.slow
 def test_replay_command_writes_the_protocol_and_the_stream_reads_back_the_same_cameras(tmp_path):
     script = Path(sys.executable).with_name("continual-nerf-replay-capture")
     assert subprocess.run([script, "--help"], check=False, capture_output=True).returncode == 0, (
@@ -195,7 +197,7 @@ def test_replay_command_writes_the_protocol_and_the_stream_reads_back_the_same_c
     ]
     parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none").setup()
     outputs = parser.get_dataparser_outputs(split="train")
-    assert [len(task) for task in parser.tasks] == [5, 5, 2] and parser.ended
+    assert [len(task) for task in parser.capture.tasks] == [5, 5, 2] and parser.capture.ended
     source = demo_frames(num_frames=12).cameras
     assert np.allclose(outputs.cameras.camera_to_worlds, source.camera_to_worlds, atol=1e-6)
     assert np.allclose(outputs.cameras.fx, source.fx) and (outputs.cameras.width == source.width).all()
@@ -240,10 +242,12 @@ def test_the_pose_transform_is_fixed_by_the_first_task_and_later_frames_do_not_m
     capture = replayed(tmp_path, num_frames=12)
     parser = StreamDataParserConfig(data=capture, frames_per_task=4).setup()
     first = parser.get_dataparser_outputs(split="train")
-    assert len(parser.tasks) == 3
+    assert len(parser.capture.tasks) == 3
     centres = first.cameras.camera_to_worlds[:4, :, 3]
     assert np.isclose(float(centres.abs().max()), 1.0), "the first task's cameras fill the unit box"
-    assert np.allclose(parser.outputs(parser.tasks[0]).cameras.camera_to_worlds, first.cameras.camera_to_worlds[:4])
+    assert np.allclose(
+        parser.capture.outputs(parser.capture.tasks[0]).cameras.camera_to_worlds, first.cameras.camera_to_worlds[:4]
+    )
     transforms = tmp_path / "dataparser_transforms.json"
     first.save_dataparser_transform(transforms)
     from_file = StreamDataParserConfig(data=capture, frames_per_task=4, normalization="file", transform_file=transforms)

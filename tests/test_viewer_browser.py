@@ -25,6 +25,8 @@ from continual_nerf.core.continual_trainer import ContinualTrainer
 from continual_nerf.viewer.continual_panel import PANEL_LABEL
 from continual_nerf.viewer.task_cameras import task_colour
 
+pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
+
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_FLAGS = [
     "--headless",
@@ -130,7 +132,10 @@ def free_port() -> int:
 @pytest.fixture
 def chromium(tmp_path: Path) -> Iterator[DevTools]:
     if not os.access(CHROMIUM, os.X_OK):
-        pytest.fail(f"{CHROMIUM} not found: this test needs Debian's chromium (apt-get install -y chromium)")
+        message = f"{CHROMIUM} not found: this test needs Debian's chromium (apt-get install -y chromium)"
+        if os.environ.get("CONTINUAL_NERF_REQUIRE_BROWSER") == "1":  # CI installs it: there its absence is a failure
+            pytest.fail(message)
+        pytest.skip(message)
     browser = DevTools(tmp_path / "chromium-profile")
     yield browser
     browser.close()
@@ -191,7 +196,7 @@ def look_from_above(trainer: ContinualTrainer) -> None:
             client.camera.look_at = np.zeros(3)
 
 
-def test_panel_follows_tasks_and_its_controls_act_on_training(live_run, chromium, tmp_path):
+def test_panel_follows_tasks_and_its_controls_act_on_training(chromium, live_run, tmp_path):
     trainer = live_run
     datamanager = trainer.pipeline.datamanager
     dataset = datamanager.train_dataset

@@ -13,6 +13,7 @@ import dataclasses
 import gc
 import json
 import resource
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional
@@ -53,8 +54,11 @@ def live_tensor_bytes() -> int:
     Gradients live from a step's backward to the next step, and only for the networks that step updated
     (nerfacto's proposal networks skip steps): counted, they would make the total depend on the step.
     """
-    tensors = [obj for obj in gc.get_objects() if isinstance(obj, torch.Tensor) and not isinstance(obj, FakeTensor)]
-    gradients = {t.grad.untyped_storage().data_ptr() for t in tensors if t.grad is not None}
+    with warnings.catch_warnings():
+        # scanning every object touches deprecated torch aliases and non-leaf tensors' .grad: both only looked at
+        warnings.simplefilter("ignore")
+        tensors = [obj for obj in gc.get_objects() if isinstance(obj, torch.Tensor) and not isinstance(obj, FakeTensor)]
+        gradients = {t.grad.untyped_storage().data_ptr() for t in tensors if t.grad is not None}
     storages = {t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in tensors if not t.is_meta}
     return sum(size for pointer, size in storages.items() if pointer not in gradients)
 
