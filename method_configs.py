@@ -90,6 +90,14 @@ def _nerf(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
     return config
 
 
+CONTINUAL_NGP_PAPER = _variant(CONTINUAL_NGP, "continual-ngp-paper", current_task_fraction="uniform")
+"""The paper's recipe exactly: each batch uniform over all released pixels, no stored pixels."""
+
+continual_ngp_paper = MethodSpecification(
+    config=CONTINUAL_NGP_PAPER,
+    description="continual-ngp with the paper's recipe exactly (Po et al.): batches uniform over all released pixels.",
+)
+
 CONTINUAL_NGP_INCRE = _variant(CONTINUAL_NGP, "continual-ngp-incre", replay=False)
 """iNGP-Incre: continual-ngp without replay."""
 
@@ -104,8 +112,11 @@ continual_ngp_ewc = MethodSpecification(
     "by Elastic Weight Consolidation.",
 )
 
+CONTINUAL_NGP_JOINT = _variant(CONTINUAL_NGP, "continual-ngp-joint", replay=False, joint=True)
+"""iNGP*: the joint upper bound."""
+
 continual_ngp_joint = MethodSpecification(
-    config=_variant(CONTINUAL_NGP, "continual-ngp-joint", replay=False, joint=True),
+    config=CONTINUAL_NGP_JOINT,
     description="iNGP* (upper bound): the hash grid trained on every task's images at once, same total budget.",
 )
 

@@ -7,7 +7,7 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Type
+from typing import Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -16,24 +16,24 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
-from continual_nerf.dataparsers import demo_scene
+from continual_nerf.dataparsers import demo_scene, demo_street
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
-
-SCENE_SCALE = 0.1
-"""Metres to scene units: the 20 m room fits nerfstudio's [-1, 1] box."""
 
 
 @dataclass
 class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
-    """A camera walking along a textured room, generated from a seed (no download, exact poses)."""
+    """A generated scene with exact poses (no download): a camera walking along a room, or a three-camera vehicle
+    driving down a street."""
 
     _target: Type = field(default_factory=lambda: ContinualDemoDataParser)
     """The dataparser this config builds."""
     data: Path = Path("data/continual-demo")
     """Folder the rendered scene is written to, and reused from when it already holds the same scene."""
+    scene: Literal["room", "street"] = "room"
+    """room: one camera walks along a corridor-room; street: a vehicle's front, front-left and front-right cameras."""
     num_frames: int = 120
-    """Number of frames along the camera path, in capture order."""
+    """Capture instants along the path, in capture order (one image each in the room, three in the street)."""
     width: int = 64
     """Image width in pixels."""
     height: int = 48
@@ -41,7 +41,7 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     fov_degrees: float = 70.0
     """Horizontal field of view of the camera."""
     seed: int = 0
-    """Seed of the crate layout and of the wobble of the camera path."""
+    """Seed of the object layout and of the wobble of the camera path."""
 
     def validate(self) -> None:
         super().validate()
@@ -60,12 +60,23 @@ class ContinualDemoDataParser(DataParser):
 
     def _scene_folder(self) -> Path:
         c = self.config
-        return c.data / f"room_{c.width}x{c.height}_{c.num_frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
+        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.num_frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
 
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
 
-    def _render_scene(self, folder: Path, poses: np.ndarray, crates: list[demo_scene.Crate]) -> None:
+    def _scene_and_poses(self) -> Tuple[demo_scene.Scene, np.ndarray, Optional[np.ndarray]]:
+        """The scene, the camera-to-world matrices of its images in capture order, and their capture instants
+        (None when there is one image per instant)."""
+        rng = np.random.default_rng(self.config.seed)
+        if self.config.scene == "street":
+            scene = demo_street.street(rng)
+            poses, instants = demo_street.rig_path(self.config.num_frames, rng)
+            return scene, poses, instants
+        scene = demo_scene.room(rng)
+        return scene, demo_scene.camera_path(self.config.num_frames, rng), None
+
+    def _render_scene(self, folder: Path, poses: np.ndarray, scene: demo_scene.Scene) -> None:
         """Render every frame into a temporary folder, then rename it into place."""
         c = self.config
         partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
@@ -74,7 +85,7 @@ class ContinualDemoDataParser(DataParser):
         focal = self._focal()
         frames = []
         for i, c2w in enumerate(poses):
-            image = demo_scene.render_view(c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, crates)
+            image = demo_scene.render_view(c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, scene)
             Image.fromarray(image).save(partial / "images" / f"frame_{i:05d}.png")
             frames.append(
                 {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()}
@@ -88,15 +99,14 @@ class ContinualDemoDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         c = self.config
-        rng = np.random.default_rng(c.seed)
-        crates = demo_scene.make_crates(rng)
-        poses = demo_scene.camera_path(c.num_frames, rng)
+        scene, poses, instants = self._scene_and_poses()
         folder = self._scene_folder()
         if not (folder / "transforms.json").exists():
-            self._render_scene(folder, poses, crates)
-        centre = (demo_scene.ROOM_MIN + demo_scene.ROOM_MAX) / 2
+            self._render_scene(folder, poses, scene)
+        centre = (scene.lo + scene.hi) / 2
+        scale = 2.0 / float((scene.hi - scene.lo).max())  # the scene's longest side spans nerfstudio's [-1, 1] box
         scaled = poses.copy()
-        scaled[:, :, 3] = (poses[:, :, 3] - centre) * SCENE_SCALE
+        scaled[:, :, 3] = (poses[:, :, 3] - centre) * scale
         focal = self._focal()
         cameras = Cameras(
             camera_to_worlds=torch.from_numpy(scaled).float(),
@@ -111,9 +121,10 @@ class ContinualDemoDataParser(DataParser):
         transform = torch.eye(4)[:3]
         transform[:, 3] = torch.from_numpy(-centre).float()
         return DataparserOutputs(
-            image_filenames=[folder / "images" / f"frame_{i:05d}.png" for i in range(c.num_frames)],
+            image_filenames=[folder / "images" / f"frame_{i:05d}.png" for i in range(len(poses))],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
-            dataparser_scale=SCENE_SCALE,
+            dataparser_scale=scale,
+            metadata={} if instants is None else {"time_group": torch.from_numpy(instants).long()},
         )

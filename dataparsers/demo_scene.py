@@ -1,14 +1,17 @@
-"""A procedural textured corridor-room and an exact ray caster for it (numpy only).
+"""Procedural textured scenes and an exact ray caster for them (numpy only): the demo room and the demo street.
 
-The camera walks along the room's long axis looking at one side wall, so consecutive tasks
-see overlapping, and distant tasks disjoint, parts of the scene: the setting in which a
-NeRF trained task by task forgets. Poses are exact; colours come from analytic textures.
+Room: one camera walks along a corridor-room's long axis looking at one side wall, so consecutive tasks see
+overlapping, and distant tasks disjoint, parts of the scene: the setting in which a NeRF trained task by task
+forgets. Street: a vehicle drives down a street between facades with three cameras (front, front-left,
+front-right), so each stretch of road is seen during its own time span only, by several cameras at each instant.
+Poses are exact; colours come from analytic textures.
 """
 
 from __future__ import annotations
 
 import colorsys
 from dataclasses import dataclass
+from typing import Callable, List
 
 import numpy as np
 
@@ -24,6 +27,29 @@ class Crate:
     lo: np.ndarray
     hi: np.ndarray
     rgb: np.ndarray
+
+
+SurfaceColour = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+"""Colour of a scene's bounding box seen from inside, at hit points (N, 3), given the axis hit and its side."""
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A box seen from inside (walls, floor, ceiling or sky) with boxes standing in it."""
+
+    lo: np.ndarray
+    """Lower corner of the bounding box, metres."""
+    hi: np.ndarray
+    """Upper corner of the bounding box, metres."""
+    crates: List[Crate]
+    """Boxes inside the scene."""
+    surface: SurfaceColour
+    """Texture of the bounding box's inside."""
+
+
+def room(rng: np.random.Generator) -> Scene:
+    """The corridor-room: textured walls whose colour drifts along the room, crates along both long walls."""
+    return Scene(lo=ROOM_MIN, hi=ROOM_MAX, crates=make_crates(rng), surface=_room_colour)
 
 
 def make_crates(rng: np.random.Generator, count: int = 14) -> list[Crate]:
@@ -49,14 +75,20 @@ def camera_path(num_frames: int, rng: np.random.Generator) -> np.ndarray:
     z = EYE_HEIGHT + 0.15 * np.sin(2 * np.pi * 3 * t + phase[1])
     yaw = np.pi / 2 + np.deg2rad(30.0) * np.sin(2 * np.pi * 4 * t + phase[2])
     pitch = np.deg2rad(-12.0 + 6.0 * np.sin(2 * np.pi * 5 * t))
+    return look_matrices(np.stack([x, y, z], axis=-1), yaw, pitch)
+
+
+def look_matrices(positions: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """Camera-to-world matrices (N, 3, 4), OpenGL convention, of cameras at `positions` looking along yaw (from +x
+    towards +y) and pitch (up from the horizon), radians, with no roll (z is up)."""
     forward = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=-1)
     right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
     right /= np.linalg.norm(right, axis=-1, keepdims=True)
     up = np.cross(right, forward)
-    return np.stack([right, up, -forward, np.stack([x, y, z], axis=-1)], axis=-1)
+    return np.stack([right, up, -forward, positions], axis=-1)
 
 
-def _checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
+def checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
     return ((np.floor(u / period) + np.floor(v / period)) % 2).astype(np.float64)
 
 
@@ -73,25 +105,27 @@ def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> 
     side = axis == 1
     base = _hue_along_room(x, 0.55, 0.95)
     stripes = 0.75 + 0.25 * np.sin(2 * np.pi * x / 0.37) * np.sin(2 * np.pi * z / 0.29)
-    tiles = 0.65 + 0.35 * _checker(x, z, 0.5)
+    tiles = 0.65 + 0.35 * checker(x, z, 0.5)
     colour[side] = base[side] * (tiles * stripes)[side, None]
     floor = (axis == 2) & ~positive
     floor_base = _hue_along_room(-x, 0.35, 0.8)
-    colour[floor] = floor_base[floor] * (0.55 + 0.45 * _checker(x, y, 0.8))[floor, None]
+    colour[floor] = floor_base[floor] * (0.55 + 0.45 * checker(x, y, 0.8))[floor, None]
     ceiling = (axis == 2) & positive
     colour[ceiling] = (0.8 + 0.15 * np.sin(2 * np.pi * x / 2.0))[ceiling, None] * np.array([0.95, 0.93, 0.88])
     ends = axis == 0
     colour[ends] = (
         np.where(positive[ends, None], [[0.2, 0.3, 0.8]], [[0.8, 0.3, 0.2]])
-        * (0.7 + 0.3 * _checker(y, z, 0.4))[ends, None]
+        * (0.7 + 0.3 * checker(y, z, 0.4))[ends, None]
     )
     return colour
 
 
-def _intersect_room(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distance to the room's inside, the axis of the wall hit and whether it is the max side."""
+def _intersect_box_inside(
+    origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance to a box's inside, the axis of the wall hit and whether it is the max side."""
     with np.errstate(divide="ignore"):
-        t_axis = np.where(dirs > 0, (ROOM_MAX - origins) / dirs, (ROOM_MIN - origins) / dirs)
+        t_axis = np.where(dirs > 0, (hi - origins) / dirs, (lo - origins) / dirs)
     t_axis = np.where(dirs == 0, np.inf, t_axis)
     axis = np.argmin(t_axis, axis=-1)
     rows = np.arange(len(axis))
@@ -110,12 +144,12 @@ def _intersect_crate(origins: np.ndarray, dirs: np.ndarray, crate: Crate) -> tup
     return np.where(hit, t_near, np.inf), np.argmax(t_near_axes, axis=-1)
 
 
-def cast_rays(origins: np.ndarray, dirs: np.ndarray, crates: list[Crate]) -> np.ndarray:
+def cast_rays(origins: np.ndarray, dirs: np.ndarray, scene: Scene) -> np.ndarray:
     """RGB in [0, 1] seen along each ray (N, 3)."""
-    t, axis, positive = _intersect_room(origins, dirs)
-    colour = _room_colour(origins + t[:, None] * dirs, axis, positive)
+    t, axis, positive = _intersect_box_inside(origins, dirs, scene.lo, scene.hi)
+    colour = scene.surface(origins + t[:, None] * dirs, axis, positive)
     shade = np.array([0.85, 1.0, 0.75])[axis]
-    for crate in crates:
+    for crate in scene.crates:
         t_crate, crate_axis = _intersect_crate(origins, dirs, crate)
         nearer = t_crate < t
         if not nearer.any():
@@ -132,7 +166,7 @@ def cast_rays(origins: np.ndarray, dirs: np.ndarray, crates: list[Crate]) -> np.
 
 
 def render_view(
-    c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int, crates: list[Crate]
+    c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int, scene: Scene
 ) -> np.ndarray:
     """Render one view as uint8 (height, width, 3), 2x2 supersampled against aliasing."""
     samples = 2
@@ -144,5 +178,5 @@ def render_view(
     dirs = dirs_cam @ c2w[:, :3].T
     dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
     origins = np.broadcast_to(c2w[:, 3], dirs.shape)
-    rgb = cast_rays(origins, dirs, crates).reshape(height, samples, width, samples, 3).mean(axis=(1, 3))
+    rgb = cast_rays(origins, dirs, scene).reshape(height, samples, width, samples, 3).mean(axis=(1, 3))
     return np.round(rgb * 255).astype(np.uint8)

@@ -8,6 +8,7 @@ their pixels; rays of earlier tasks are marked `is_replay`, for the pipeline's r
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from threading import Lock
 from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
@@ -25,6 +26,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIn
 from nerfstudio.model_components.ray_generators import RayGenerator
 
 from continual_nerf.core.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
+from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
@@ -50,6 +52,14 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     """Supervise rays of past tasks with the frozen copy of the model (Eq. 4); off trains each task alone."""
     joint: bool = False
     """Non-continual upper bound (iNGP*, NeRF*): every task's pixels sampled from the start; same budget and tests."""
+    current_task_fraction: Union[float, Literal["uniform", "sqrt"]] = "uniform"
+    """Share of each batch drawn from the open task: uniform over all released pixels (the paper: ~1/k in task k),
+    sqrt (1/sqrt(k)), or a fixed share; the rest replays earlier tasks."""
+    replay_buffer_size: float = 0.0
+    """Experience replay: real pixels of closed tasks kept, as a fraction of the training pixels (below 1) or a
+    count; 0 keeps none (the paper)."""
+    replay_buffer_share: float = 0.5
+    """Share of the replayed rays drawn from the replay buffer while it holds pixels; the oracle renders the rest."""
     # nerfstudio's options for image-based sampling: batches here are drawn from the released tasks' pixels
     masks_on_gpu: tyro.conf.Suppress[bool] = False
     """Not used: batches are drawn from the released tasks' pixels."""
@@ -86,6 +96,20 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
         if self.seconds_per_task is None and self.iterations_per_task < 1:
             raise ContinualConfigError(
                 f"--pipeline.datamanager.iterations-per-task must be at least 1, got {self.iterations_per_task}"
+            )
+        if isinstance(self.current_task_fraction, float) and not 0 < self.current_task_fraction <= 1:
+            raise ContinualConfigError(
+                "--pipeline.datamanager.current-task-fraction must be uniform, sqrt or a share in (0, 1], "
+                f"got {self.current_task_fraction}"
+            )
+        if self.replay_buffer_size < 0 or (self.replay_buffer_size > 0 and not self.replay):
+            raise ContinualConfigError(
+                "--pipeline.datamanager.replay-buffer-size must be 0 or positive, and needs replay, "
+                f"got {self.replay_buffer_size} with replay {self.replay}"
+            )
+        if not 0 <= self.replay_buffer_share <= 1:
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.replay-buffer-share must be in [0, 1], got {self.replay_buffer_share}"
             )
         if self.train_num_rays_per_batch < 1:
             raise ContinualConfigError(
@@ -139,6 +163,8 @@ class ContinualDataManager(VanillaDataManager):
     ):
         self.released_task = 0
         """The open task: its pixels and the rays of every task up to it are served."""
+        self.replay_buffer: Optional[ExperienceReplayBuffer] = None
+        """Stored pixels of closed tasks the pipeline keeps (experience replay); None keeps none."""
         super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
 
     @property
@@ -225,11 +251,24 @@ class ContinualDataManager(VanillaDataManager):
         """What training does once the open task's budget is spent, as the viewer shows it."""
         return "budget spent"
 
+    def open_task_share(self) -> Optional[float]:
+        """Share of a batch drawn from the open task; None: uniform over all released pixels (the paper)."""
+        share = self.config.current_task_fraction
+        if share == "uniform":
+            return None
+        return 1 / math.sqrt(self.released_task + 1) if share == "sqrt" else float(share)
+
     def sample_pixels(self, num_rays: int) -> torch.Tensor:
-        """Flat pixel numbers drawn uniformly over all released tasks (over the open task alone without replay)."""
+        """Flat pixel numbers: the open task's first, then the earlier tasks' (uniformly over their pixels), in the
+        share --current-task-fraction sets; the open task's alone without replay."""
         start, end = self.train_dataset.open_task_pixel_range()
-        replaying = self.config.replay and self.released_task > 0
-        return torch.randint(0 if replaying else start, end, (num_rays,))
+        if not (self.config.replay and self.released_task > 0):
+            return torch.randint(start, end, (num_rays,))
+        share = self.open_task_share()
+        if share is None:
+            return torch.randint(0, end, (num_rays,))
+        num_open = round(num_rays * share)
+        return torch.cat([torch.randint(start, end, (num_open,)), torch.randint(0, start, (num_rays - num_open,))])
 
     def ray_indices(self, flat: torch.Tensor) -> torch.Tensor:
         """(camera, y, x) of flat pixel numbers."""
@@ -252,8 +291,6 @@ class ContinualDataManager(VanillaDataManager):
             self.open_released_task()
         self.train_count += 1
         flat = self.sample_pixels(self.config.train_num_rays_per_batch)
-        indices = self.ray_indices(flat)
-        ray_bundle = self.train_ray_generator(indices)
         start, _ = self.train_dataset.open_task_pixel_range()
         is_replay = flat < start
         current = ~is_replay
@@ -261,7 +298,30 @@ class ContinualDataManager(VanillaDataManager):
         assert pixels is not None, "the open task's pixels are read above"
         image = torch.empty((len(flat), 3), device=self.device)
         image[current] = pixels[flat[current] - start].to(self.device)
+        if self.replay_buffer is not None and len(self.replay_buffer):
+            self._draw_from_replay_buffer(flat, image, is_replay)
+        indices = self.ray_indices(flat)
+        ray_bundle = self.train_ray_generator(indices)
         return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
+
+    def _draw_from_replay_buffer(self, flat: torch.Tensor, image: torch.Tensor, is_replay: torch.Tensor) -> None:
+        """Turn --replay-buffer-share of the replayed rays into rays of stored pixels, supervised by their colours."""
+        assert self.replay_buffer is not None
+        replayed = torch.nonzero(is_replay).view(-1)
+        chosen = replayed[: round(len(replayed) * self.config.replay_buffer_share)]
+        stored_flat, stored_rgb = self.replay_buffer.sample(len(chosen))
+        flat[chosen] = stored_flat
+        image[chosen] = stored_rgb.to(image.device)
+        is_replay[chosen] = False
+
+    def open_task_pixels(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Flat pixel numbers and colours of the open task (what a replay buffer keeps a subset of at its end)."""
+        start, end = self.train_dataset.open_task_pixel_range()
+        assert self.train_dataset.task_pixels is not None
+        return torch.arange(start, end), self.train_dataset.task_pixels
+
+    def total_train_pixels(self) -> int:
+        return int(self.train_dataset.pixel_offsets[-1])
 
     def _eval_frame(self, step: int) -> int:
         frames = self.seen_test_frames()

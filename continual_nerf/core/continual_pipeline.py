@@ -20,6 +20,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.evaluation import evaluate_frames
+from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
@@ -78,6 +79,9 @@ class ContinualPipeline(VanillaPipeline):
         self.task = TaskState()
         self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
         self.replay_oracle = ReplayOracle(options.train_num_rays_per_batch)
+        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_size)
+        if self.replay_buffer.enabled:
+            self.datamanager.replay_buffer = self.replay_buffer
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
 
@@ -167,11 +171,21 @@ class ContinualPipeline(VanillaPipeline):
     def open_next_task(self) -> None:
         """Freeze the model as the replay oracle, close the open task and release the next one."""
         self.before_task_switch()
+        if self.replay_buffer.enabled:
+            self._keep_pixels_of_closing_task()
         if self.replays:
             self.replay_oracle.update(self.model)
         self.task.current += 1
         self.budget.start_task()
         self.datamanager.release(self.task.current)
+
+    def _keep_pixels_of_closing_task(self) -> None:
+        flat, rgb = self.datamanager.open_task_pixels()
+        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels())
+        CONSOLE.print(
+            f"Replay buffer: {len(self.replay_buffer)} pixels of {self.task.current + 1} tasks, "
+            f"{self.replay_buffer.nbytes / 2**20:.2f} MiB"
+        )
 
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""

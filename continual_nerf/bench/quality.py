@@ -1,0 +1,214 @@
+"""How close each recipe comes to the joint upper bound, on both built-in scenes.
+
+    python -m continual_nerf.bench.quality [--scenes room street] [--settings 5x240 10x120] [--output-dir ...]
+
+For every scene (the demo room and the demo street) and every setting (tasks x iterations per task, or tasks x
+seconds per task with an `s` suffix: `5x20s`), trains continual-ngp with its defaults, continual-ngp with the
+paper's recipe, continual-ngp with experience replay at 1 % and 5 % of the pixels, iNGP-Incre and the joint bound,
+each through nerfstudio's Trainer, and prints per run: final mean test PSNR, per-task spread of the final row,
+the largest drop of a task from its best, mean SSIM and training seconds. Finished runs are read back, not
+trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Literal, Optional, Tuple
+
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+from rich.table import Table
+
+from continual_nerf.atomic_files import write_text_atomically
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, CONTINUAL_NGP_JOINT, CONTINUAL_NGP_PAPER
+from continual_nerf.recipes import quiet_config, train_like_ns_train
+
+Variant = Callable[[ContinualTrainerConfig], ContinualTrainerConfig]
+
+
+def _with_buffer(fraction: float) -> Variant:
+    def variant(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+        config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, replay_buffer_size=fraction)
+        return config
+
+    return variant
+
+
+RECIPES: Dict[str, Tuple[ContinualTrainerConfig, Optional[Variant]]] = {
+    "continual-ngp": (CONTINUAL_NGP, None),
+    "continual-ngp, paper recipe": (CONTINUAL_NGP_PAPER, None),
+    "continual-ngp, ER 1 %": (CONTINUAL_NGP, _with_buffer(0.01)),
+    "continual-ngp, ER 5 %": (CONTINUAL_NGP, _with_buffer(0.05)),
+    "iNGP-Incre": (CONTINUAL_NGP_INCRE, None),
+    "joint (upper bound)": (CONTINUAL_NGP_JOINT, None),
+}
+"""What the benchmark trains, by the name its tables give it: a registered config and a change to it."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """Tasks and the per-task budget, written `5x240` (iterations) or `5x20s` (training seconds)."""
+
+    num_tasks: int
+    iterations: Optional[int]
+    seconds: Optional[float]
+
+    @classmethod
+    def parse(cls, text: str) -> "Setting":
+        tasks, budget = text.lower().split("x")
+        if budget.endswith("s"):
+            return cls(int(tasks), None, float(budget[:-1]))
+        return cls(int(tasks), int(budget), None)
+
+    def __str__(self) -> str:
+        budget = f"{self.seconds:g} s" if self.seconds is not None else f"{self.iterations} iterations"
+        return f"{self.num_tasks} tasks x {budget}"
+
+    @property
+    def key(self) -> str:
+        return (
+            f"{self.num_tasks}x{self.seconds:g}s" if self.seconds is not None else f"{self.num_tasks}x{self.iterations}"
+        )
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What the tables show of one run."""
+
+    final_mean_psnr: float
+    """Mean test PSNR over all test frames after the last task."""
+    spread: float
+    """Largest minus smallest task PSNR of the final row."""
+    largest_drop: float
+    """Largest fall of a task from its best PSNR (in any row) to its final PSNR."""
+    mean_ssim: float
+    """Mean over tasks of the final row's SSIM."""
+    train_seconds: float
+    """Training seconds of the whole run (the pipeline's clock)."""
+    final_row: List[float]
+    """Final test PSNR per task."""
+
+    @classmethod
+    def of(cls, matrix: AccuracyMatrix, train_seconds: float) -> "RunSummary":
+        final = matrix.psnr[-1]
+        best = [max(row[j] for row in matrix.psnr if len(row) > j) for j in range(len(final))]
+        return cls(
+            final_mean_psnr=matrix.mean_psnr[-1],
+            spread=max(final) - min(final),
+            largest_drop=max(b - f for b, f in zip(best, final)),
+            mean_ssim=sum(matrix.ssim[-1]) / len(matrix.ssim[-1]),
+            train_seconds=train_seconds,
+            final_row=final,
+        )
+
+
+@dataclass
+class QualityBenchmark:
+    """Trains every recipe on both built-in scenes at each setting and prints how each compares to the joint bound."""
+
+    scenes: Tuple[Literal["room", "street"], ...] = ("room", "street")
+    """Built-in scenes to measure on (continual-demo --scene)."""
+    settings: Tuple[str, ...] = ("5x240", "10x120")
+    """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
+    recipes: Tuple[str, ...] = tuple(RECIPES)
+    """Which of the recipes to train (names as the tables print them)."""
+    rays_per_batch: int = 1024
+    """Rays per training batch (the paper's 1024)."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device every run trains on."""
+    data: Path = Path("data/continual-demo")
+    """Where the demo scenes are generated (and reused from)."""
+    output_dir: Path = Path("outputs/bench-quality")
+    """Runs, results.json and results.md; finished runs found here are not trained again."""
+
+    def main(self) -> None:
+        unknown = [name for name in self.recipes if name not in RECIPES]
+        if unknown:
+            raise SystemExit(f"--recipes: unknown {', '.join(unknown)} (known: {', '.join(RECIPES)})")
+        results: Dict[str, Dict[str, Dict[str, dict]]] = {}
+        for scene in self.scenes:
+            for setting in map(Setting.parse, self.settings):
+                runs = {name: self.run(scene, setting, name) for name in self.recipes}
+                results.setdefault(scene, {})[setting.key] = {n: dataclasses.asdict(r) for n, r in runs.items()}
+                self.print_table(scene, setting, runs)
+        write_text_atomically(self.output_dir / "results.json", json.dumps(results, indent=1))
+        write_text_atomically(self.output_dir / "results.md", markdown(results))
+        CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}")
+
+    def run(self, scene: str, setting: Setting, recipe: str) -> RunSummary:
+        """The recipe's run at this scene and setting: read back if it finished before, trained otherwise."""
+        folder = self.output_dir / "runs" / scene / setting.key / recipe.replace(" ", "").replace(",", "_")
+        summary_path = folder / "summary.json"
+        if summary_path.exists():
+            return RunSummary(**json.loads(summary_path.read_text()))
+        config = self.config(scene, setting, recipe, folder)
+        CONSOLE.print(f"[bold]{scene}, {setting}: training {recipe}")
+        trainer = train_like_ns_train(config)
+        matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+        summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds)
+        write_text_atomically(summary_path, json.dumps(dataclasses.asdict(summary), indent=1))
+        return summary
+
+    def config(self, scene: str, setting: Setting, recipe: str, folder: Path) -> ContinualTrainerConfig:
+        base, variant = RECIPES[recipe]
+        config = quiet_config(
+            base,
+            folder,
+            device=self.device,
+            dataparser=ContinualDemoDataParserConfig(data=self.data, scene=scene),  # type: ignore[arg-type]
+            num_tasks=setting.num_tasks,
+            iterations_per_task=setting.iterations or 1,  # unused when the tasks are timed
+            seconds_per_task=setting.seconds,
+            train_num_rays_per_batch=self.rays_per_batch,
+        )
+        config.save_only_latest_checkpoint = True
+        return variant(config) if variant is not None else config
+
+    def print_table(self, scene: str, setting: Setting, runs: Dict[str, RunSummary]) -> None:
+        table = Table(title=f"{scene}, {setting}, {self.rays_per_batch} rays per batch")
+        for column in TABLE_COLUMNS:
+            table.add_column(column, justify="right")
+        for name, run in runs.items():
+            table.add_row(*table_row(name, run, runs.get("joint (upper bound)")))
+        CONSOLE.print(table)
+
+
+TABLE_COLUMNS = (
+    "recipe", "final mean PSNR (dB)", "vs joint (dB)", "per-task spread (dB)", "largest drop from best (dB)",
+    "mean SSIM", "training s",
+)  # fmt: skip
+
+
+def table_row(name: str, run: RunSummary, joint: Optional[RunSummary]) -> List[str]:
+    gap = f"{run.final_mean_psnr - joint.final_mean_psnr:+.2f}" if joint is not None else "n/a"
+    return [
+        name, f"{run.final_mean_psnr:.2f}", gap, f"{run.spread:.2f}", f"{run.largest_drop:.2f}",
+        f"{run.mean_ssim:.3f}", f"{run.train_seconds:.0f}",
+    ]  # fmt: skip
+
+
+def markdown(results: Dict[str, Dict[str, Dict[str, dict]]]) -> str:
+    lines = ["# Quality against the joint bound (`python -m continual_nerf.bench.quality`)", ""]
+    for scene, by_setting in results.items():
+        for key, runs in by_setting.items():
+            summaries = {name: RunSummary(**run) for name, run in runs.items()}
+            lines += [f"## {scene}, {Setting.parse(key)}", "", "| " + " | ".join(TABLE_COLUMNS) + " |"]
+            lines.append("|" + "---|" * len(TABLE_COLUMNS))
+            joint = summaries.get("joint (upper bound)")
+            lines += ["| " + " | ".join(table_row(name, run, joint)) + " |" for name, run in summaries.items()]
+            lines.append("")
+    return "\n".join(lines)
+
+
+def entrypoint() -> None:
+    tyro.cli(QualityBenchmark).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,128 @@
+"""The open task's share of each batch, and the experience-replay buffer of real pixels of closed tasks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from helpers import demo_parser, tiny_config, train
+from PIL import Image
+
+from continual_nerf.core.continual_dataset import ClosedTaskError
+from continual_nerf.core.experience_replay import ExperienceReplayBuffer
+from continual_nerf.errors import ContinualConfigError
+
+
+def set_up(run_dir, num_tasks: int = 3, **datamanager):
+    config = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=num_tasks)
+    for name, value in datamanager.items():
+        setattr(config.pipeline.datamanager, name, value)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
+def open_rays(batch) -> int:
+    return int((~batch["is_replay"]).sum())
+
+
+@pytest.mark.parametrize("share", [0.5, 0.25, "sqrt"])
+def test_the_batch_holds_the_configured_share_of_open_task_rays(run_dir, share):
+    trainer = set_up(run_dir, current_task_fraction=share)
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    rays = datamanager.config.train_num_rays_per_batch
+    _, batch = datamanager.next_train(0)
+    assert open_rays(batch) == rays, "task 1 has nothing to replay"
+    for task in (1, 2):
+        pipeline.open_next_task()
+        _, batch = datamanager.next_train(0)
+        expected = 1 / math.sqrt(task + 1) if share == "sqrt" else share
+        assert open_rays(batch) == round(rays * expected)
+        replayed_frames = batch["indices"][batch["is_replay"], 0]
+        assert set(datamanager.train_dataset.task_of_frame[replayed_frames].tolist()) <= set(range(task))
+
+
+def test_uniform_sampling_is_the_papers_rule(run_dir):
+    trainer = set_up(run_dir, current_task_fraction="uniform")
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    pipeline.open_next_task()
+    pipeline.open_next_task()
+    torch.manual_seed(0)
+    start, end = datamanager.train_dataset.open_task_pixel_range()
+    flat = datamanager.sample_pixels(4096)
+    torch.manual_seed(0)
+    assert torch.equal(flat, torch.randint(0, end, (4096,))), "one uniform draw over every released pixel"
+
+
+def test_buffer_keeps_an_equal_random_share_of_each_closed_task_and_never_exceeds_its_size():
+    buffer = ExperienceReplayBuffer(size=30)
+    tasks = [torch.arange(0, 100), torch.arange(100, 140), torch.arange(140, 400)]
+    for task, flat in enumerate(tasks):
+        colours = (flat.float() / 400)[:, None].expand(-1, 3)
+        buffer.add_task(task, flat, colours, total_pixels=400)
+        assert len(buffer) <= 30
+        assert buffer.tasks_held() == {j: 30 // (task + 1) for j in range(task + 1)}
+        for j, pixels in enumerate(tasks[: task + 1]):
+            held = buffer.flat[buffer.task == j]
+            assert bool(torch.isin(held, pixels).all()) and len(held.unique()) == len(held), "distinct pixels of j"
+    assert torch.equal(buffer.rgb[:, 0], (buffer.flat.float() / 400 * 255).round().to(torch.uint8))
+    assert ExperienceReplayBuffer(size=0.05).capacity(400) == 20, "below 1: a fraction of the training pixels"
+
+
+@pytest.mark.slow
+def test_a_run_with_the_buffer_holds_closed_tasks_pixels_only_and_resumes_with_the_same_buffer(run_dir, tmp_path):
+    config = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
+    config.pipeline.datamanager.replay_buffer_size = 0.02
+    trainer = train(config)
+    buffer, datamanager = trainer.pipeline.replay_buffer, trainer.pipeline.datamanager
+    dataset = datamanager.train_dataset
+    capacity = buffer.capacity(datamanager.total_train_pixels())
+    assert 0 < len(buffer) <= capacity and set(buffer.tasks_held()) == {0, 1}, "tasks 1 and 2, never the open one"
+    frames = torch.searchsorted(dataset.pixel_offsets, buffer.flat, right=True) - 1
+    assert torch.equal(dataset.task_of_frame[frames], buffer.task), "each pixel is stored under its own task"
+    for flat, frame, rgb in list(zip(buffer.flat.tolist(), frames.tolist(), buffer.rgb))[:20]:
+        local = flat - int(dataset.pixel_offsets[frame])
+        width = int(dataset.cameras.width[frame])
+        image = np.asarray(Image.open(dataset.image_filenames[frame]))
+        assert torch.equal(rgb, torch.from_numpy(image[local // width, local % width, :3])), "the pixel's own colour"
+
+    resumed = tiny_config(tmp_path / "resumed", demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
+    resumed.pipeline.datamanager.replay_buffer_size = 0.02
+    resumed.load_checkpoint = config.get_checkpoint_dir() / "step-000000005.ckpt"  # the end of task 2
+    again = train(resumed).pipeline.replay_buffer
+    for name in ("flat", "rgb", "task"):
+        assert torch.equal(getattr(again, name), getattr(buffer, name)), f"the resumed run's buffer {name} differs"
+
+
+def test_batches_with_the_buffer_take_stored_pixels_and_still_read_no_closed_task_image(run_dir):
+    trainer = set_up(run_dir, replay_buffer_size=0.1, replay_buffer_share=0.5)
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    datamanager.next_train(0)  # task 1 opens at its first batch
+    pipeline.open_next_task()
+    _, batch = datamanager.next_train(0)
+    closed = datamanager.train_dataset.task_of_frame[batch["indices"][:, 0]] == 0
+    stored = closed & ~batch["is_replay"]
+    assert stored.any() and (closed & batch["is_replay"]).any(), "task 1's rays: stored pixels and oracle targets"
+    with pytest.raises(ClosedTaskError):
+        datamanager.train_dataset.get_numpy_image(0)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"current_task_fraction": 0.0}, "current-task-fraction must be uniform, sqrt or a share in (0, 1]"),
+        ({"current_task_fraction": 1.5}, "current-task-fraction must be uniform, sqrt or a share in (0, 1]"),
+        ({"replay_buffer_size": -1.0}, "replay-buffer-size must be 0 or positive"),
+        ({"replay_buffer_size": 0.01, "replay": False}, "replay-buffer-size must be 0 or positive, and needs replay"),
+        ({"replay_buffer_share": 1.5}, "replay-buffer-share must be in [0, 1]"),
+    ],
+)
+def test_bad_share_and_buffer_options_are_one_line_errors(run_dir, options, message):
+    config = tiny_config(run_dir, demo_parser(num_frames=18))
+    for name, value in options.items():
+        setattr(config.pipeline.datamanager, name, value)
+    with pytest.raises(ContinualConfigError, match=message.replace("(", r"\(").replace("[", r"\[")) as error:
+        config.pipeline.datamanager.setup(device="cpu")
+    assert "\n" not in str(error.value)
