@@ -92,9 +92,9 @@ def checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
     return ((np.floor(u / period) + np.floor(v / period)) % 2).astype(np.float64)
 
 
-def _hue_along_room(x: np.ndarray, saturation: float, value: float) -> np.ndarray:
-    """Colour that drifts with the position along the room, so tasks differ in colour too."""
-    hue = (x - ROOM_MIN[0]) / (ROOM_MAX[0] - ROOM_MIN[0]) * 0.85
+def hue_along(x: np.ndarray, start: float, end: float, saturation: float, value: float) -> np.ndarray:
+    """Colour that drifts with the position x from start to end, so tasks differ in colour too."""
+    hue = (x - start) / (end - start) * 0.85
     return np.stack([np.array(colorsys.hsv_to_rgb(h, saturation, value)) for h in hue.ravel()]).reshape(*x.shape, 3)
 
 
@@ -103,12 +103,12 @@ def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> 
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     colour = np.empty_like(points)
     side = axis == 1
-    base = _hue_along_room(x, 0.55, 0.95)
+    base = hue_along(x, ROOM_MIN[0], ROOM_MAX[0], 0.55, 0.95)
     stripes = 0.75 + 0.25 * np.sin(2 * np.pi * x / 0.37) * np.sin(2 * np.pi * z / 0.29)
     tiles = 0.65 + 0.35 * checker(x, z, 0.5)
     colour[side] = base[side] * (tiles * stripes)[side, None]
     floor = (axis == 2) & ~positive
-    floor_base = _hue_along_room(-x, 0.35, 0.8)
+    floor_base = hue_along(-x, ROOM_MIN[0], ROOM_MAX[0], 0.35, 0.8)
     colour[floor] = floor_base[floor] * (0.55 + 0.45 * checker(x, y, 0.8))[floor, None]
     ceiling = (axis == 2) & positive
     colour[ceiling] = (0.8 + 0.15 * np.sin(2 * np.pi * x / 2.0))[ceiling, None] * np.array([0.95, 0.93, 0.88])

@@ -9,7 +9,7 @@ from typing import List, Tuple
 
 import numpy as np
 
-from continual_nerf.dataparsers.demo_scene import Crate, Scene, checker, look_matrices
+from continual_nerf.dataparsers.demo_scene import Crate, Scene, checker, hue_along, look_matrices
 
 STREET_MIN = np.array([-40.0, -6.0, 0.0])
 STREET_MAX = np.array([40.0, 6.0, 12.0])
@@ -28,11 +28,6 @@ def street(rng: np.random.Generator) -> Scene:
     return Scene(lo=STREET_MIN, hi=STREET_MAX, crates=_street_objects(rng), surface=_street_colour)
 
 
-def _hue_along_street(x: np.ndarray, saturation: float, value: float) -> np.ndarray:
-    hue = (x - STREET_MIN[0]) / (STREET_MAX[0] - STREET_MIN[0]) * 0.85
-    return np.stack([np.array(colorsys.hsv_to_rgb(h, saturation, value)) for h in hue.ravel()]).reshape(*x.shape, 3)
-
-
 def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> np.ndarray:
     """Facades (y walls), road (floor), sky (ceiling) and the street's two ends."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
@@ -40,7 +35,7 @@ def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -
     facade = axis == 1
     window = ((x % 2.5) > 0.6) & ((x % 2.5) < 1.9) & ((z % 3.0) > 0.9) & ((z % 3.0) < 2.4) & (z > 2.5)
     bands = 0.8 + 0.2 * checker(x, z, 1.25)
-    walls = _hue_along_street(x + 3.0 * positive, 0.45, 0.9) * bands[:, None]
+    walls = hue_along(x + 3.0 * positive, STREET_MIN[0], STREET_MAX[0], 0.45, 0.9) * bands[:, None]
     glass = np.array([0.15, 0.2, 0.3]) + 0.1 * np.sin(x / 3.0)[:, None]
     colour[facade] = np.where(window[:, None], glass, walls)[facade]
     road = (axis == 2) & ~positive
