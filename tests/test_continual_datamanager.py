@@ -60,7 +60,7 @@ def test_replayed_targets_are_the_frozen_oracles_colours(trainer):
     pipeline.add_replay_targets(ray_bundle, batch)
     replay = batch["is_replay"]
     assert replay.any() and (~replay).any()
-    expected = pipeline.replay_oracle.render(ray_bundle[replay])["rgb"]
+    expected = pipeline.replay_oracle.render(ray_bundle[replay])
     assert torch.allclose(batch["image"][replay], expected, atol=1e-6)
 
 

@@ -2,7 +2,7 @@
 
 import torch
 
-from continual_nerf.core.distillation_loss import depth_distillation_loss, distillation_loss
+from continual_nerf.core.distillation_loss import distillation_loss
 
 
 def test_each_term_sums_its_own_rays_squared_error_over_the_whole_batch():
@@ -32,10 +32,3 @@ def test_a_batch_without_replay_has_a_zero_distillation_term_and_gradients_reach
     assert terms["distillation_loss"].item() == 0.0
     (terms["rgb_loss"] + terms["distillation_loss"]).backward()
     assert pred.grad is not None and (pred.grad.abs().sum(dim=-1) > 0).all()
-
-
-def test_the_depth_term_covers_replayed_rays_only_over_the_whole_batch():
-    pred = torch.tensor([[1.0], [2.0], [3.0], [4.0]])
-    target = torch.tensor([[0.0], [0.5], [9.0], [3.0]])
-    is_replay = torch.tensor([False, True, False, True])
-    assert torch.isclose(depth_distillation_loss(pred, target, is_replay), torch.tensor((1.5 + 1.0) / 4))

@@ -77,7 +77,7 @@ def test_compiled_and_eager_models_give_the_same_outputs():
             torch.testing.assert_close(actual[name], expected[name], rtol=1e-4, atol=1e-5, msg=f"{name} differs")
     oracle = ReplayOracle()
     oracle.update(compiled)  # a second compiled model, built from the config, loading the state dict
-    torch.testing.assert_close(oracle.render(fixed_rays())["rgb"], expected["rgb"], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(oracle.render(fixed_rays()), expected["rgb"], rtol=1e-4, atol=1e-5)
     from_viewer_thread = {}  # the viewer renders from its own thread, where the model runs eager
     viewer = threading.Thread(target=lambda: from_viewer_thread.update(render(compiled, training=False)))
     viewer.start()

@@ -11,7 +11,6 @@ from typing import Any, Dict, List, Literal, Mapping, Optional, Type
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import writer
@@ -25,13 +24,10 @@ from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
-from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
 """State-dict keys of the replay oracle's frozen copy in a checkpoint."""
-BASE_LR_KEY = "continual_base_lr"
-"""Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
 
 
 @dataclass
@@ -43,14 +39,6 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     """Splits the trajectory into tasks and serves the released tasks' rays and pixels."""
     model: ContinualNGPModelConfig = field(default_factory=ContinualNGPModelConfig)
     """The hash-grid model trained with Eq. 4."""
-    lr_decay_per_task: float = 1.0
-    """Factor every learning rate falls to, exponentially, over each task's budget, restarting at the next task;
-    1 keeps it constant (the paper)."""
-
-    def validate(self) -> None:
-        super().validate()
-        if not 0 < self.lr_decay_per_task <= 1:
-            raise ContinualConfigError(f"--pipeline.lr-decay-per-task must be in (0, 1], got {self.lr_decay_per_task}")
 
 
 @dataclass(frozen=True)
@@ -139,37 +127,20 @@ class ContinualPipeline(VanillaPipeline):
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
         """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4)."""
         is_replay = batch["is_replay"]
-        if not is_replay.any():
-            return
-        image = batch["image"]
-        targets = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)])
-        image[is_replay] = targets["rgb"].to(image.dtype)
-        if getattr(self.model.config, "distill_depth", 0.0) > 0:
-            depth = torch.zeros((len(image), 1), device=image.device)
-            depth[is_replay] = targets["depth"].to(depth.dtype)
-            batch["replay_depth"] = depth
+        if is_replay.any():
+            image = batch["image"]
+            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)]).to(image.dtype)
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        trainer, optimizers = training_callback_attributes.trainer, training_callback_attributes.optimizers
-        assert trainer is not None and optimizers is not None
-        before = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION
-        decay = [TrainingCallback([before], self._decay_learning_rates, args=[optimizers])]
+        trainer = training_callback_attributes.trainer
+        assert trainer is not None
         return super().get_training_callbacks(training_callback_attributes) + [
-            *(decay if self.config.lr_decay_per_task < 1 else []),
-            TrainingCallback([before], self._start_clock),
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._start_clock),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration, args=[trainer]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._print_summary),
         ]
-
-    def _decay_learning_rates(self, optimizers: Optimizers, step: int) -> None:
-        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task)."""
-        factor = self.config.lr_decay_per_task ** self.budget.progress()
-        for optimizer in optimizers.optimizers.values():
-            for group in optimizer.param_groups:
-                group.setdefault(BASE_LR_KEY, group["lr"])  # in the optimizer's state: a resumed run keeps it
-                group["lr"] = group[BASE_LR_KEY] * factor
 
     def _start_clock(self, step: int) -> None:
         self._clock_started = time.perf_counter()

@@ -23,12 +23,3 @@ def distillation_loss(
         "rgb_loss": squared_error[~replay].sum() / num_rays,
         "distillation_loss": squared_error[replay].sum() / num_rays,
     }
-
-
-def depth_distillation_loss(
-    pred_depth: torch.Tensor, target_depth: torch.Tensor, is_replay: torch.Tensor
-) -> torch.Tensor:
-    """Absolute difference to the oracle's expected depth over the replayed rays, divided by the whole batch size as
-    Eq. 4's terms are (an option beyond the paper, which distils colour only)."""
-    error = (pred_depth - target_depth).abs().view(-1)
-    return error[is_replay.to(error.device)].sum() / max(1, error.numel())

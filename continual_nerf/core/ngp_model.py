@@ -11,7 +11,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
-from continual_nerf.core.distillation_loss import depth_distillation_loss, distillation_loss
+from continual_nerf.core.distillation_loss import distillation_loss
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import proposal_sampler_state, set_proposal_sampler_state, without_lpips
 from continual_nerf.validated_config import ValidatedConfig
@@ -46,15 +46,11 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     """Run the hash grids and MLPs through torch.compile (eager, after a one-line notice, where it cannot compile)."""
     detach_sample_positions: bool = True
     """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only."""
-    distill_depth: float = 0.0
-    """Weight of a distillation term on the oracle's expected depth of replayed rays (0: colour only, the paper)."""
     replay_sample_fraction: float = 0.5
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with."""
 
     def validate(self) -> None:
         super().validate()
-        if self.distill_depth < 0:
-            raise ContinualConfigError(f"--pipeline.model.distill-depth must not be negative, got {self.distill_depth}")
         if not self.replay_sample_fraction > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
@@ -94,9 +90,6 @@ class ContinualNGPModel(NerfactoModel):
         if "is_replay" in batch:
             del loss_dict["rgb_loss"]
             loss_dict.update(distillation_loss(outputs["rgb"], batch["image"].to(self.device), batch["is_replay"]))
-        if "replay_depth" in batch:
-            depth_term = depth_distillation_loss(outputs["depth"], batch["replay_depth"], batch["is_replay"])
-            loss_dict["depth_distillation_loss"] = self.config.distill_depth * depth_term
         return loss_dict
 
     def get_image_metrics_and_images(

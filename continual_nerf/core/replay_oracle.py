@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Optional
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -49,8 +49,7 @@ class ReplayOracle(nn.Module):
         return super().train(False)
 
     @torch.no_grad()
-    def render(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
-        """What the frozen copy renders along each ray: colour (N, 3) and expected depth (N, 1)."""
+    def render(self, ray_bundle: RayBundle) -> torch.Tensor:
+        """Colour (N, 3) the frozen copy renders along each ray."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
-        outputs = self.model(ray_bundle)
-        return {"rgb": outputs["rgb"], "depth": outputs["depth"]}
+        return self.model(ray_bundle)["rgb"]
