@@ -52,9 +52,9 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     """Supervise rays of past tasks with the frozen copy of the model (Eq. 4); off trains each task alone."""
     joint: bool = False
     """Non-continual upper bound (iNGP*, NeRF*): every task's pixels sampled from the start; same budget and tests."""
-    current_task_fraction: Union[float, Literal["uniform", "sqrt"]] = "uniform"
-    """Share of each batch drawn from the open task: uniform over all released pixels (the paper: ~1/k in task k),
-    sqrt (1/sqrt(k)), or a fixed share; the rest replays earlier tasks."""
+    current_task_fraction: Union[float, Literal["uniform", "sqrt"]] = 0.5
+    """Share of each batch drawn from the open task: a fixed share, sqrt (1/sqrt(k) in task k), or uniform over all
+    released pixels (the paper: ~1/k in task k); the rest replays earlier tasks."""
     replay_buffer_size: float = 0.0
     """Experience replay: real pixels of closed tasks kept, as a fraction of the training pixels (below 1) or a
     count; 0 keeps none (the paper)."""

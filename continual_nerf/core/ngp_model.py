@@ -46,8 +46,9 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     """Run the hash grids and MLPs through torch.compile (eager, after a one-line notice, where it cannot compile)."""
     detach_sample_positions: bool = True
     """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only."""
-    replay_sample_fraction: float = 0.5
-    """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with."""
+    replay_sample_fraction: float = 1.0
+    """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
+    1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
 
     def validate(self) -> None:
         super().validate()

@@ -30,7 +30,7 @@ from continual_nerf.core.task_split import split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError, ContinualNerfError, first_line
 from continual_nerf.experiments import report
-from continual_nerf.experiments.plan import PAPER_TABLE1, Plan, RunSpec, continual_methods, is_implicit
+from continual_nerf.experiments.plan import TABLE1, Plan, RunSpec, continual_methods, is_implicit
 from continual_nerf.experiments.runner import RunSettings, find_finished_run, load_run, train_missing_runs
 
 PROG = "continual-nerf-experiments"
@@ -58,7 +58,7 @@ class ExperimentsConfig:
     """Scene: any registered dataparser (a subcommand); by default a CPU-sized demo room."""
     output_dir: Path = Path("reports/continual-demo")
     """Report folder: report.md, results.json, figures/ and the runs/ they come from; rerunning resumes it."""
-    methods: Tuple[str, ...] = PAPER_TABLE1
+    methods: Tuple[str, ...] = TABLE1
     """Methods of Tables 1 and 4, Fig. 6, the accuracy matrices, the forgetting table and the render strip."""
     num_tasks: int = 5
     """Tasks the trajectory is split into for Tables 1, 2 and 4 (paper: 10)."""
@@ -70,11 +70,11 @@ class ExperimentsConfig:
     """Multiplies the per-task budget of the NeRF-backbone methods in Tables 1, 3 and 4 (paper: 10 min vs 1 min)."""
     time_budgets: Tuple[float, ...] = (1.0, 4.0)
     """Per-task training seconds of Table 2 (paper, on a GPU: 1, 5 and 30); none skips Table 2."""
-    time_budget_methods: Tuple[str, ...] = ("continual-ngp", "continual-nerf-meil")
+    time_budget_methods: Tuple[str, ...] = ("continual-ngp-paper", "continual-nerf-meil")
     """Methods of Table 2."""
     task_counts: Tuple[int, ...] = (2, 5, 10)
     """Numbers of tasks of Table 3 (paper: 2, 5, 10, 20); none skips Table 3."""
-    task_count_methods: Tuple[str, ...] = ("continual-ngp",)
+    task_count_methods: Tuple[str, ...] = ("continual-ngp-paper",)
     """Methods of Table 3."""
     probe_task: int = 2
     """Task whose test PSNR Fig. 6 follows and whose first test view the render strip shows (paper: 2)."""

@@ -17,7 +17,8 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 PAPER_NAMES = {
-    "continual-ngp": "Ours",
+    "continual-ngp-paper": "Ours",
+    "continual-ngp": "Ours, this plugin's defaults",
     "continual-ngp-incre": "iNGP-Incre",
     "continual-ngp-ewc": "iNGP + EWC",
     "continual-nerf-incre": "NeRF-Incre",
