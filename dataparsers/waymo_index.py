@@ -12,7 +12,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Union
 
 import numpy as np
 
-from continual_nerf.dataparsers.capture import check_pose
+from continual_nerf.dataparsers.capture import check_intrinsics, check_pose
 from continual_nerf.errors import DatasetError
 
 CameraName = Literal["FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT"]
@@ -69,6 +69,11 @@ def transform_matrix(values: Optional[Union[Sequence[float], np.ndarray]], sourc
 
 
 def check_calibrated(calibrations: Dict[str, Calibration], cameras: Sequence[str], source: Path) -> None:
+    """Every chosen camera has a calibration, and its intrinsics are sound."""
     uncalibrated = [name for name in cameras if name not in calibrations]
     if uncalibrated:
         raise DatasetError(f"{source}: no calibration for camera {uncalibrated[0]}")
+    for name in cameras:
+        calibration = calibrations[name]
+        fx, fy, cx, cy = calibration.intrinsic[:4]
+        check_intrinsics(fx, fy, cx, cy, calibration.width, calibration.height, f"{source} ({name} calibration)")

@@ -212,7 +212,13 @@ def write_colmap_text(scene: Path, image_lines: Optional[List[str]] = None) -> P
 # ---- ScanNet: SensReader's exported folder and the raw .sens file ----
 
 SCANNET_INTRINSIC = np.array([[28.0, 0, 15.5, 0], [0, 29.0, 11.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-"""Colour intrinsics of the generated scenes, as intrinsic_color.txt and the .sens header hold them."""
+"""Colour intrinsics of the generated scenes' 32x24 images, as the .sens header holds them."""
+SCANNET_COLOUR_SIZE = (1296, 968)
+"""ScanNet's colour camera: an exported folder's intrinsic_color.txt is for images of this size."""
+EXPORTED_INTRINSIC = (
+    np.diag([SCANNET_COLOUR_SIZE[0] / WIDTH, SCANNET_COLOUR_SIZE[1] / HEIGHT, 1, 1]) @ SCANNET_INTRINSIC
+)
+"""intrinsic_color.txt of the generated exported folders: the colour camera's, whose 32x24 copies are the images."""
 
 
 def scannet_poses(count: int, seed: int = 0) -> np.ndarray:
@@ -234,10 +240,11 @@ def jpeg_bytes(index: int) -> bytes:
 
 
 def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
-    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt."""
+    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt; the colour images are 32x24
+    copies of the colour camera's."""
     for sub in ("color", "pose", "intrinsic"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", SCANNET_INTRINSIC)
+    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", EXPORTED_INTRINSIC)
     for i, pose in enumerate(poses):
         (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
         np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
@@ -251,6 +258,7 @@ def write_sens(
     color_compression: int = 2,
     depth_compression: int = 1,
     sparse_depth_bytes: Optional[int] = None,
+    intrinsic: np.ndarray = SCANNET_INTRINSIC,
 ) -> Dict[int, bytes]:
     """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
 
@@ -264,7 +272,7 @@ def write_sens(
     colours = {i: jpeg_bytes(i) for i in range(len(poses))}
     with path.open("wb") as sens:
         sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
-        for matrix in (SCANNET_INTRINSIC, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
+        for matrix in (intrinsic, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
         sens.write(struct.pack("<ii", color_compression, depth_compression))
         sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from helpers import (
     CAMERAS,
@@ -239,6 +240,28 @@ def test_missing_calibration_of_a_chosen_camera_is_named(tmp_path):
     data = tmp_path / "segment.tfrecord"
     data.write_bytes(tfrecord([v1_frame(0, ["FRONT", "SIDE_LEFT"])]))
     expect_error(DatasetError, f"{data}: no calibration for camera FRONT_LEFT", config(data, tmp_path))
+
+
+@pytest.mark.parametrize(
+    "column, value, message",
+    [
+        (0, 0.0, "focal lengths must be finite and positive, got fx=0 fy=23"),
+        (2, float("nan"), "principal point cx=nan cy=6 lies outside the 16x12 image"),
+    ],
+)
+def test_bad_intrinsics_of_a_chosen_camera_are_named(tmp_path, column, value, message):
+    data = write_v2(tmp_path / "waymo")
+    path = data / "camera_calibration" / f"{SEGMENT}.parquet"
+    table = pq.read_table(path)
+    values = table.column(INTRINSIC[column]).to_pylist()
+    values[CAMERAS.index("FRONT_LEFT")] = value
+    pq.write_table(table.set_column(table.schema.get_field_index(INTRINSIC[column]), INTRINSIC[column], [values]), path)
+    with pytest.raises(DatasetError) as raised:
+        config(data, tmp_path).setup().get_dataparser_outputs(split="train")
+    assert str(raised.value).startswith(f"{path} (FRONT_LEFT calibration): {message}")
+    assert len(read_segment(config(data, tmp_path, cameras=("FRONT",))).image_filenames) == NUM_TIMES, (
+        "only the chosen cameras' calibrations matter"
+    )
 
 
 def test_corrupt_tfrecord_length_and_data_are_named(tmp_path):
