@@ -416,9 +416,15 @@ def transform_column(matrices: List[Optional[np.ndarray]], fixed_size: bool = Tr
     return pa.array(values, type=pa.list_(pa.float64(), 16 if fixed_size else -1))
 
 
-def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_poses: bool = True) -> Path:
-    """A v2 root of one segment: camera images shuffled over several row groups, one image without its own pose."""
-    rows = [(i, camera) for i in range(NUM_TIMES) for camera in CAMERAS]
+def write_v2(
+    root: Path,
+    skip_columns: Optional[Dict[str, str]] = None,
+    image_poses: bool = True,
+    cameras: Sequence[str] = CAMERAS,
+) -> Path:
+    """A v2 root of one segment of `cameras`: camera images shuffled over several row groups, one image without its
+    own pose."""
+    rows = [(i, camera) for i in range(NUM_TIMES) for camera in cameras]
     rows = [rows[k] for k in np.random.default_rng(0).permutation(len(rows))]
     own_pose = [image_poses and (i, camera) != (1, "SIDE_LEFT") for i, camera in rows]
     images = {
@@ -432,13 +438,13 @@ def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_po
         "[CameraImageComponent].pose_timestamp": pa.array([TIMES[i] / 1e6 for i, _ in rows]),
     }
     calibration = {
-        "key.segment_context_name": pa.array([SEGMENT] * len(CAMERAS)),
-        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in CAMERAS], type=pa.int8()),
-        **{name: pa.array([intrinsic(camera)[k] for camera in CAMERAS]) for k, name in enumerate(waymo_v2.INTRINSIC)},
-        waymo_v2.EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in CAMERAS]),
-        waymo_v2.WIDTH: pa.array([SIZES[camera][0] for camera in CAMERAS], type=pa.int32()),
-        waymo_v2.HEIGHT: pa.array([SIZES[camera][1] for camera in CAMERAS], type=pa.int32()),
-        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(CAMERAS), type=pa.int8()),
+        "key.segment_context_name": pa.array([SEGMENT] * len(cameras)),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in cameras], type=pa.int8()),
+        **{name: pa.array([intrinsic(camera)[k] for camera in cameras]) for k, name in enumerate(waymo_v2.INTRINSIC)},
+        waymo_v2.EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in cameras]),
+        waymo_v2.WIDTH: pa.array([SIZES[camera][0] for camera in cameras], type=pa.int32()),
+        waymo_v2.HEIGHT: pa.array([SIZES[camera][1] for camera in cameras], type=pa.int32()),
+        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(cameras), type=pa.int8()),
     }
     poses = {
         "key.segment_context_name": pa.array([SEGMENT] * NUM_TIMES),

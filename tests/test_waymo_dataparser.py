@@ -236,10 +236,24 @@ def test_parquet_file_missing_a_column_is_named(tmp_path, component, column):
     expect_error(DatasetError, f"{data / component / SEGMENT}.parquet: missing column {column}", config(data, tmp_path))
 
 
-def test_missing_calibration_of_a_chosen_camera_is_named(tmp_path):
-    data = tmp_path / "segment.tfrecord"
-    data.write_bytes(tfrecord([v1_frame(0, ["FRONT", "SIDE_LEFT"])]))
-    expect_error(DatasetError, f"{data}: no calibration for camera FRONT_LEFT", config(data, tmp_path))
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_by_default_the_cameras_the_segment_has_are_used_and_logged(tmp_path, capsys, version):
+    cameras = ["FRONT", "SIDE_LEFT"]
+    if version == "v1":
+        data = tmp_path / "segment.tfrecord"
+        data.write_bytes(tfrecord([v1_frame(i, cameras) for i in range(NUM_TIMES)]))
+        calibrated_in = data
+    else:
+        data = write_v2(tmp_path / "waymo", cameras=cameras)
+        calibrated_in = data / "camera_calibration" / f"{SEGMENT}.parquet"
+    assert_known_segment(config(data, tmp_path / "cache"), fixture_pose, list(range(NUM_TIMES)), cameras)
+    logged = " ".join(capsys.readouterr().out.split())
+    assert f"{calibrated_in}: using the segment's cameras FRONT, SIDE_LEFT (--cameras chooses)" in logged
+    expect_error(
+        DatasetError,
+        f"{calibrated_in}: no calibration for camera FRONT_LEFT",
+        config(data, tmp_path, cameras=("FRONT", "FRONT_LEFT")),
+    )
 
 
 @pytest.mark.parametrize(
