@@ -64,6 +64,17 @@ class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
             raise ContinualConfigError(f"--max-frames must be at least 1, got {self.max_frames}")
 
 
+class CaptureOutputs(DataparserOutputs):
+    """DataparserOutputs whose `dataparser_transform` is float64 and maps the capture's own world coordinates (tens of
+    km for a drive, where float32 keeps centimetres at best) into the box; poses mapped back to the world (ns-export's
+    world frame) are computed in float64, whatever dtype they come in."""
+
+    def transform_poses_to_original_space(
+        self, poses: torch.Tensor, camera_convention: Literal["opengl", "opencv"] = "opencv"
+    ) -> torch.Tensor:
+        return super().transform_poses_to_original_space(poses.double(), camera_convention)
+
+
 @dataclass
 class CaptureFrames:
     """Frames of a capture in capture order, in metric world units."""
@@ -214,11 +225,11 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         camera_type=CameraType.PERSPECTIVE,
     )
     CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order")
-    return DataparserOutputs(
+    return CaptureOutputs(
         image_filenames=frames.image_filenames,
         cameras=cameras,
         scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
-        dataparser_transform=torch.from_numpy(transform).float(),
+        dataparser_transform=torch.from_numpy(transform),
         dataparser_scale=scale,
         metadata=_metadata(frames, config),
     )

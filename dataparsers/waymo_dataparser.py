@@ -143,16 +143,14 @@ def read_segment(config: WaymoDataParserConfig) -> WaymoSegment:
 
 
 def capture_frames(segment: WaymoSegment) -> CaptureFrames:
-    """Camera-to-world in OpenGL convention, recentred on the first image's vehicle position in float64."""
-    vehicle_to_world = segment.vehicle_to_world.copy()
-    vehicle_to_world[:, :3, 3] -= segment.vehicle_to_world[0, :3, 3]
+    """Camera-to-world in OpenGL convention and Waymo's world coordinates (float64: the box fitting recentres them)."""
     calibrations = [segment.calibrations[name] for name in segment.cameras]
     camera_to_vehicle = np.stack([calibration.camera_to_vehicle for calibration in calibrations])
     intrinsic = np.stack([calibration.intrinsic for calibration in calibrations])
     f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 = intrinsic.T
     return CaptureFrames(
         image_filenames=segment.image_filenames,
-        camera_to_worlds=vehicle_to_world @ camera_to_vehicle @ WAYMO_CAMERA_TO_OPENGL,
+        camera_to_worlds=segment.vehicle_to_world @ camera_to_vehicle @ WAYMO_CAMERA_TO_OPENGL,
         fx=f_u,
         fy=f_v,
         cx=c_u,

@@ -32,7 +32,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from continual_nerf.dataparsers.capture import fit_into_box, fitted_poses
+from continual_nerf.dataparsers.capture import CaptureOutputs, fit_into_box, fitted_poses
 from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import DatasetError
 
@@ -281,7 +281,7 @@ class CaptureTasks:
         intrinsics = torch.from_numpy(np.stack([frame.intrinsics for frame in frames])).float()
         distortion = np.stack([frame.distortion for frame in frames])
         bound = self.config.scene_box_bound
-        return DataparserOutputs(
+        return CaptureOutputs(
             image_filenames=[frame.image for frame in frames],
             cameras=Cameras(
                 camera_to_worlds=poses,
@@ -296,7 +296,7 @@ class CaptureTasks:
                 camera_type=CameraType.PERSPECTIVE,
             ),
             scene_box=SceneBox(aabb=torch.tensor([[-bound] * 3, [bound] * 3], dtype=torch.float32)),
-            dataparser_transform=torch.from_numpy(self.transform).float(),
+            dataparser_transform=torch.from_numpy(self.transform),
             dataparser_scale=self.scale,
             metadata={"image_scale_factor": 1.0 / self.config.downscale_factor},
         )
