@@ -30,9 +30,12 @@ from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTra
 from continual_nerf.dataparsers import waymo_v2
 from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
 from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import quiet_config, train_like_ns_train
+from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
+from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
 DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
 """The demo scenes the tests render, kept between test runs (rendering is the slow part of a tiny run)."""
@@ -71,6 +74,43 @@ def demo_parser(
     num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0
 ) -> ContinualDemoDataParserConfig:
     return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=width, height=height, seed=seed)
+
+
+def stream_config(
+    run_dir: Path, capture: Path, idle: str, frames_per_task: int, iterations_per_task: int
+) -> ContinualTrainerConfig:
+    """continual-ngp-stream reading `capture` (polled every 0.05 s, poses as written), with tiny_config's settings and
+    an even smaller model."""
+    parser = StreamDataParserConfig(
+        data=capture, frames_per_task=frames_per_task, poll_seconds=0.05, normalization="none", unreadable_timeout=0
+    )
+    config = tiny_config(run_dir, parser, iterations_per_task=iterations_per_task, rays_per_batch=64)
+    config.pipeline.datamanager = StreamingDataManagerConfig(
+        dataparser=parser,
+        iterations_per_task=iterations_per_task,
+        train_num_rays_per_batch=64,
+        test_interval=4,
+        idle=idle,  # type: ignore[arg-type]
+    )
+    config.pipeline.model = dataclasses.replace(
+        config.pipeline.model,
+        num_levels=4,
+        log2_hashmap_size=10,
+        max_res=32,
+        num_nerf_samples_per_ray=8,
+        num_proposal_samples_per_ray=(16,),
+    )
+    config.method_name = "continual-ngp-stream"
+    return config
+
+
+def replayed(tmp_path: Path, num_frames: int = 6, end_marker: bool = False) -> Path:
+    """A capture folder holding the demo room's first `num_frames` frames, as continual-nerf-replay-capture writes."""
+    capture = tmp_path / "capture"
+    replay(
+        ReplayCaptureConfig(output=capture, fps=0, end_marker=end_marker, dataparser=demo_parser(num_frames=num_frames))
+    )
+    return capture
 
 
 def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], dataparser: Sequence[str]) -> List[str]:

@@ -9,11 +9,18 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
+import json
+import os
+import shutil
+import struct
 import subprocess
+import threading
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -29,6 +36,7 @@ from helpers import (
     ns_train_command,
     numbered_frames,
     scannet_poses,
+    stream_config,
     tiny_config,
     train,
     v1_frame,
@@ -37,7 +45,8 @@ from helpers import (
     write_transforms,
     write_v1,
 )
-from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils import writer
 from PIL import Image
 
@@ -50,6 +59,7 @@ from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.streaming.replay_capture import frame_json, write_frame, write_marker
 
 
 @dataclass
@@ -438,3 +448,236 @@ def test_ns_train_prints_one_line_no_traceback_and_exits_non_zero(earlier: Path,
         assert "Traceback" not in stderr, stderr[-3000:]
         assert stderr.strip().splitlines()[-1].startswith(f"continual-ngp: error: {expected}"), stderr[-3000:]
     assert digest(earlier) == before
+
+
+# ---- streamed frames: the capture folder is another process's output, so a frame that can never be used is skipped
+# with one warning line naming it, at start-up and mid-run, and training goes on ----
+
+SOURCE_FRAMES = 12
+"""The demo room's frames the capture folders below are written from (frame n shows source frame n mod 12)."""
+
+
+@functools.lru_cache(maxsize=1)
+def source_frames() -> DataparserOutputs:
+    return demo_parser(num_frames=SOURCE_FRAMES).setup().get_dataparser_outputs(split="train")
+
+
+def write_good_frame(capture: Path, number: int) -> None:
+    source = source_frames()
+    write_frame(capture, number, Path(source.image_filenames[number % SOURCE_FRAMES]), frame_json(source.cameras, 0))
+
+
+def write_frame_json(capture: Path, number: int, **changes: Any) -> Path:
+    """Frame `number`'s image as the protocol writes it, and its JSON with `changes`."""
+    write_good_frame(capture, number)
+    path = capture / f"{number:06d}.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+    return path
+
+
+def outside_folder(capture: Path) -> Path:
+    """A folder beside the capture holding what a hostile frame points at: an image and a valid frame JSON."""
+    folder = capture.parent / "outside"
+    if not folder.is_dir():
+        folder.mkdir()
+        shutil.copyfile(source_frames().image_filenames[0], folder / "secret.png")
+        (folder / "frame.json").write_text(
+            json.dumps({"file_path": "images/000000.png", **frame_json(source_frames().cameras, 0)})
+        )
+    return folder
+
+
+def png_header(width: int, height: int) -> bytes:
+    """A PNG that announces `width` x `height` pixels in its header."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0")) + chunk(b"IEND", b"")
+
+
+def absolute_image_path(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path=str(outside_folder(capture) / "secret.png"))
+    return "lies outside the capture folder"
+
+
+def image_path_climbing_out(capture: Path, number: int) -> str:
+    outside_folder(capture)
+    write_frame_json(capture, number, file_path="images/../../outside/secret.png")
+    return "lies outside the capture folder"
+
+
+def image_symlink_out(capture: Path, number: int) -> str:
+    write_good_frame(capture, number)
+    image = capture / "images" / f"{number:06d}.png"
+    image.unlink()
+    image.symlink_to(outside_folder(capture) / "secret.png")
+    return "lies outside the capture folder"
+
+
+def folder_symlink_out(capture: Path, number: int) -> str:
+    link = capture / "linked"
+    if not link.is_symlink():
+        link.symlink_to(outside_folder(capture), target_is_directory=True)
+    write_frame_json(capture, number, file_path="linked/secret.png")
+    return "lies outside the capture folder"
+
+
+def json_symlink_out(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").symlink_to(outside_folder(capture) / "frame.json")
+    return "lies outside the capture folder"
+
+
+def image_fifo(capture: Path, number: int) -> str:
+    write_good_frame(capture, number)
+    image = capture / "images" / f"{number:06d}.png"
+    image.unlink()
+    os.mkfifo(image)
+    return "not a regular file (a FIFO); not read"
+
+
+def image_folder(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path="images")
+    return "not a regular file (a folder); not read"
+
+
+def json_fifo(capture: Path, number: int) -> str:
+    os.mkfifo(capture / f"{number:06d}.json")
+    return "not a regular file (a FIFO); not read"
+
+
+def decompression_bomb(capture: Path, number: int) -> str:
+    (capture / "images" / "bomb.png").write_bytes(png_header(100000, 100000))
+    write_frame_json(capture, number, file_path="images/bomb.png", w=100000, h=100000)
+    return "is too large to decode (Image size (10000000000 pixels) exceeds limit"
+
+
+def deeply_nested_json(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").write_text("[" * 100000 + "]" * 100000)
+    return "not a usable frame JSON (maximum recursion depth exceeded"
+
+
+def intrinsics(message: str, **changes: Any) -> Callable[[Path, int], str]:
+    """A frame whose intrinsics are changed by `changes`; its warning line holds `message`."""
+
+    def write(capture: Path, number: int) -> str:
+        write_frame_json(capture, number, **changes)
+        return message
+
+    return write
+
+
+def file_path_not_a_string(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path=["images", "000000.png"])
+    return "a frame needs a `file_path` string"
+
+
+def file_path_with_nul(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path="images/\u0000.png")
+    return "not a usable path (embedded null byte)"
+
+
+HOSTILE_FRAMES: Dict[str, Callable[[Path, int], str]] = {
+    "absolute-image-path": absolute_image_path,
+    "image-path-climbing-out": image_path_climbing_out,
+    "image-symlink-out": image_symlink_out,
+    "folder-symlink-out": folder_symlink_out,
+    "json-symlink-out": json_symlink_out,
+    "image-fifo": image_fifo,
+    "image-is-a-folder": image_folder,
+    "json-fifo": json_fifo,
+    "decompression-bomb": decompression_bomb,
+    "deeply-nested-json": deeply_nested_json,
+    "width-nan": intrinsics("image size w=nan h=18 must be whole numbers of at least 1", w=float("nan")),
+    "focal-nan": intrinsics("focal lengths must be finite and positive, got fx=nan", fl_x=float("nan")),
+    "focal-zero": intrinsics("focal lengths must be finite and positive, got fx=0", fl_x=0),
+    "focal-negative": intrinsics("focal lengths must be finite and positive, got fx=17.1378 fy=-20", fl_y=-20.0),
+    "principal-point-infinite": intrinsics("principal point cx=inf cy=9 lies outside the 24x18 image", cx=float("inf")),
+    "file-path-not-a-string": file_path_not_a_string,
+    "file-path-with-nul": file_path_with_nul,
+}
+"""Writers of a frame that can never be used; each returns the text its warning line holds."""
+
+
+def finishes(function: Callable[[], Any], seconds: float = 300.0) -> Any:
+    """`function()`, run in a thread so a reader blocked on a FIFO fails the test instead of hanging the suite."""
+    outcome: Dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = function()
+        except BaseException as error:
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"still blocked after {seconds:g} s"
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome.get("value")
+
+
+def skipped_lines(output: str, capture: Path, numbers: List[int]) -> Dict[int, List[str]]:
+    """The warning lines naming each of the frames `numbers`."""
+    lines = [line for line in output.splitlines() if line.endswith("; frame skipped")]
+    return {
+        number: [line for line in lines if line.startswith(f"{capture / f'{number:06d}.json'}: ")] for number in numbers
+    }
+
+
+@pytest.mark.parametrize("write", HOSTILE_FRAMES.values(), ids=HOSTILE_FRAMES.keys())
+def test_a_hostile_frame_at_start_up_is_skipped_with_one_warning_line(write, tmp_path, capsys):
+    capture = tmp_path / "capture"
+    for number in range(5):
+        if number == 2:
+            expected = write(capture, number)
+        else:
+            write_good_frame(capture, number)
+    write_marker(capture, 4, "end")
+    capsys.readouterr()
+    parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none").setup()
+    outputs = finishes(lambda: parser.get_dataparser_outputs(split="train"))
+    assert [[frame.name for frame in task] for task in parser.capture.tasks] == [
+        [f"{number:06d}.json" for number in (0, 1, 3, 4)]
+    ]
+    (line,) = skipped_lines(capsys.readouterr().out, capture, [2])[2]
+    assert expected in line
+    real_capture = capture.resolve()
+    assert all(Path(path).is_relative_to(real_capture) for path in outputs.image_filenames)
+
+
+@pytest.mark.slow
+def test_hostile_frames_arriving_mid_run_are_skipped_and_training_goes_on(tmp_path, capsys):
+    """Task 1's frames are there at start; the rest, every hostile frame among them, arrive after the first step."""
+    capture = tmp_path / "capture"
+    for number in range(4):
+        write_good_frame(capture, number)
+    hostile = {4 + offset: write for offset, write in enumerate(HOSTILE_FRAMES.values())}
+    good = [4 + len(hostile) + offset for offset in range(4)]
+    expected: Dict[int, str] = {}
+
+    def rest_of_the_capture(step: int) -> None:
+        if step == 0:
+            expected.update({number: write(capture, number) for number, write in hostile.items()})
+            for number in good:
+                write_good_frame(capture, number)
+            write_marker(capture, good[-1], "end")
+
+    config = stream_config(tmp_path / "outputs", capture, "wait", frames_per_task=4, iterations_per_task=2)
+    config.save_config()
+    with own_event_writers():
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainer.callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], rest_of_the_capture)
+        )
+        finishes(trainer.train)
+    matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+    assert (matrix.status, len(matrix.psnr)) == ("finished", 2)
+    used = [frame.name for frame in trainer.pipeline.datamanager.frames]
+    assert used == [f"{number:06d}.json" for number in [0, 1, 2, 3, *good]]
+    warnings = skipped_lines(capsys.readouterr().out, capture, list(hostile))
+    for number, text in expected.items():
+        assert len(warnings[number]) == 1 and text in warnings[number][0], (number, warnings[number])
