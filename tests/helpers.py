@@ -11,6 +11,7 @@ import json
 import os
 import struct
 import sys
+import zipfile
 import zlib
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
@@ -50,21 +51,23 @@ def tiny_config(
     num_tasks: int = 2,
     iterations_per_task: int = 3,
     rays_per_batch: int = 256,
-    replay: bool = True,
+    replay: Optional[bool] = None,
     small_model: bool = True,
     compile: bool = False,
+    method: ContinualTrainerConfig = CONTINUAL_NGP,
 ) -> ContinualTrainerConfig:
-    """continual-ngp on CPU with tensorboard only (no viewer) and, by default, a small hash grid, eager (compiling
-    costs more than the few steps of a test save; tests/test_performance.py checks compiled = eager)."""
+    """`method` (continual-ngp by default) on CPU with tensorboard only (no viewer) and, by default, a small model,
+    eager (compiling costs more than the few steps of a test save; tests/test_performance.py checks compiled = eager);
+    `replay` None keeps the method's own."""
     config = quiet_config(
-        CONTINUAL_NGP,
+        method,
         output_dir,
         small=small_model,
         dataparser=dataparser,
         num_tasks=num_tasks,
         iterations_per_task=iterations_per_task,
         train_num_rays_per_batch=rays_per_batch,
-        replay=replay,
+        replay=method.pipeline.datamanager.replay if replay is None else replay,
     )
     config.pipeline.model = dataclasses.replace(config.pipeline.model, compile=compile)
     return config
@@ -596,3 +599,16 @@ def corrupt(path: Path, offset: int) -> None:
     data = bytearray(path.read_bytes())
     data[offset] ^= 0x01
     path.write_bytes(bytes(data))
+
+
+def flip_tensor_bytes(checkpoint: bytes) -> bytes:
+    """A torch.save archive with four bytes flipped in the middle of its largest tensor's data: a valid zip whose
+    tensors torch.load reads without a word, one member's CRC-32 wrong."""
+    with zipfile.ZipFile(io.BytesIO(checkpoint)) as archive:
+        member = max((info for info in archive.infolist() if "/data/" in info.filename), key=lambda i: i.file_size)
+    name_length, extra_length = struct.unpack("<HH", checkpoint[member.header_offset + 26 : member.header_offset + 30])
+    middle = member.header_offset + 30 + name_length + extra_length + member.file_size // 2
+    flipped = bytearray(checkpoint)
+    for offset in range(middle, middle + 4):
+        flipped[offset] ^= 0x5A
+    return bytes(flipped)

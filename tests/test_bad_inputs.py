@@ -33,6 +33,7 @@ from helpers import (
     corrupt,
     demo_parser,
     edit_transforms,
+    flip_tensor_bytes,
     ns_train_command,
     numbered_frames,
     scannet_poses,
@@ -59,6 +60,7 @@ from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, continual_ngp_ewc, continual_ngp_joint
 from continual_nerf.streaming.replay_capture import frame_json, write_frame, write_marker
 
 
@@ -88,8 +90,10 @@ class BadInput:
 # ---- builders ----
 
 
-def corpus_run(parser: DataParserConfig, num_tasks: int = 2, **datamanager_options) -> ContinualTrainerConfig:
-    config = tiny_config(Path("outputs"), parser, num_tasks=num_tasks, iterations_per_task=2)
+def corpus_run(
+    parser: DataParserConfig, num_tasks: int = 2, method: ContinualTrainerConfig = CONTINUAL_NGP, **datamanager_options
+) -> ContinualTrainerConfig:
+    config = tiny_config(Path("outputs"), parser, num_tasks=num_tasks, iterations_per_task=2, method=method)
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **datamanager_options)
     return config
 
@@ -183,8 +187,10 @@ def corrupt_tfrecord(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     return corpus_run(parser), f"{segment}: record 1 has corrupt data (its CRC does not match)"
 
 
-def earlier_run_config(num_tasks: int = 2) -> ContinualTrainerConfig:
-    return corpus_run(demo_parser(num_frames=16), num_tasks=num_tasks)
+def earlier_run_config(
+    num_tasks: int = 2, method: ContinualTrainerConfig = CONTINUAL_NGP, **datamanager_options
+) -> ContinualTrainerConfig:
+    return corpus_run(demo_parser(num_frames=16), num_tasks=num_tasks, method=method, **datamanager_options)
 
 
 def earlier_checkpoints(context: Context) -> Path:
@@ -196,12 +202,14 @@ def resume(
     load_dir: Callable[[Context], Path] = earlier_checkpoints,
     load_step: Optional[int] = None,
     num_tasks: int = 2,
+    method: ContinualTrainerConfig = CONTINUAL_NGP,
+    datamanager_options: Optional[Dict[str, Any]] = None,
     **model_options,
 ) -> Build:
-    """The earlier run's config (with `num_tasks` and `model_options` changed) resuming from `load_dir`."""
+    """The earlier run's config (with `num_tasks`, `method` and the options changed) resuming from `load_dir`."""
 
     def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
-        config = earlier_run_config(num_tasks)
+        config = earlier_run_config(num_tasks, method, **(datamanager_options or {}))
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **model_options)
         config.load_dir, config.load_step = load_dir(context), load_step
         return config, message(config.load_dir)
@@ -214,6 +222,15 @@ def truncated_checkpoint(context: Context) -> Path:
     folder.mkdir()
     original = context.earlier / "nerfstudio_models" / "step-000000001.ckpt"
     (folder / original.name).write_bytes(original.read_bytes()[:5000])
+    return folder
+
+
+def flipped_bytes_in_a_tensor(context: Context) -> Path:
+    """The earlier run's step-1 checkpoint with four bytes flipped inside its largest tensor (the hash grid)."""
+    folder = context.scratch / "nerfstudio_models"
+    folder.mkdir()
+    original = context.earlier / "nerfstudio_models" / "step-000000001.ckpt"
+    (folder / original.name).write_bytes(flip_tensor_bytes(original.read_bytes()))
     return folder
 
 
@@ -294,6 +311,32 @@ CORPUS = [
         "resume-finished-run", resume(lambda d: f"{d / 'step-000000003.ckpt'}: its run already trained all 2 tasks")
     ),
     BadInput("run-folder-of-an-earlier-run", reuse_earlier_folder),
+    BadInput(
+        "resume-flipped-bytes-in-a-tensor",
+        resume(lambda d: f"{d / 'step-000000001.ckpt'}: corrupt checkpoint (archive/data/", flipped_bytes_in_a_tensor),
+    ),
+    *(
+        BadInput(
+            f"resume-as-{method.method_name}",
+            resume(
+                lambda d,
+                name=method.method_name: f"{d / 'step-000000001.ckpt'}: a checkpoint of continual-ngp, not of "
+                f"{name}; resume it with ns-train continual-ngp",
+                load_step=1,
+                method=method,
+            ),
+        )
+        for method in (CONTINUAL_NGP_INCRE, continual_ngp_ewc.config, continual_ngp_joint.config)
+    ),
+    BadInput(
+        "resume-fewer-iterations-per-task",
+        resume(
+            lambda d: f"{d / 'step-000000001.ckpt'}: is at step 1, beyond the 2 iterations this run has "
+            "(--pipeline.datamanager.iterations-per-task 1 for 2 tasks, or --max-num-iterations)",
+            load_step=1,
+            datamanager_options={"iterations_per_task": 1},
+        ),
+    ),
 ]
 
 
@@ -350,7 +393,7 @@ def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInp
         config.timestamp = case.name
     line = exit_line(config)
     assert isinstance(line, str), "a SystemExit with a message exits with status 1"
-    assert line.startswith("continual-ngp: error: ") and "\n" not in line
+    assert line.startswith(f"{config.method_name}: error: ") and "\n" not in line
     assert message in line
     assert digest(earlier) == before
     results = config.get_base_dir() / ACCURACY_MATRIX_FILENAME

@@ -9,12 +9,14 @@ from typing import BinaryIO
 
 import pytest
 import torch
-from helpers import demo_parser, tiny_config
+from helpers import demo_parser, flip_tensor_bytes, tiny_config
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.atomic_files import write_atomically, write_text_atomically
+from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.errors import CheckpointError
 
 
 class Killed(BaseException):
@@ -117,3 +119,19 @@ def test_temporary_checkpoint_files_live_outside_the_checkpoint_folder(run_dir, 
         )
     ]
     assert [path.name for path in config.get_checkpoint_dir().iterdir()] == ["step-000000000.ckpt"]
+
+
+def test_bytes_flipped_inside_a_tensor_are_caught_by_the_archive_crc_before_loading(tmp_path):
+    path = tmp_path / "step-000000001.ckpt"
+    weights = torch.arange(100_000, dtype=torch.float32)
+    torch.save({"step": 1, "pipeline": {"field": weights}, "optimizers": {}, "scalers": {}}, path)
+    assert torch.equal(read_checkpoint(path)["pipeline"]["field"], weights)
+    path.write_bytes(flip_tensor_bytes(path.read_bytes()))
+    loaded = torch.load(path, map_location="cpu", weights_only=True)["pipeline"]["field"]
+    assert not torch.equal(loaded, weights), "torch.load alone reads the corrupt tensor without a word"
+    with pytest.raises(CheckpointError) as raised:
+        read_checkpoint(path)
+    assert str(raised.value) == (
+        f"{path}: corrupt checkpoint (step-000000001/data/0 does not match its CRC-32); "
+        "resume from another with --load-step"
+    )

@@ -15,6 +15,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 
 from continual_nerf.checkpoints import (
+    check_method,
     checkpoint_steps,
     find_checkpoint,
     read_checkpoint,
@@ -140,16 +141,31 @@ class ContinualTrainer(Trainer):
         else:
             return super()._load_checkpoint()
         state = read_checkpoint(path)
+        check_method(state, path, self.config.method_name)
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
+        self._check_budget_reaches(state["step"], path)
         restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
             f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
             f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
+        )
+
+    def _check_budget_reaches(self, step: int, path: Path) -> None:
+        """Refuse a checkpoint at or past the last step this run has: nerfstudio's loop would not run at all."""
+        total = self.config.max_num_iterations
+        assert total is not None, "setup() sets it before loading"
+        if step + 1 < total:
+            return
+        datamanager = self.config.pipeline.datamanager
+        raise CheckpointError(
+            f"{path}: is at step {step}, beyond the {total} iterations this run has (--pipeline.datamanager."
+            f"iterations-per-task {datamanager.iterations_per_task} for {datamanager.num_tasks} tasks, or "
+            "--max-num-iterations); resume with the options it was trained with"
         )
 
     def _load_states(self, state: Dict[str, Any], path: Path) -> None:
@@ -180,6 +196,7 @@ class ContinualTrainer(Trainer):
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
             "step": step,
+            "method": self.config.method_name,
             "pipeline": self.pipeline.state_dict(),
             "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
