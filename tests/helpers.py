@@ -6,6 +6,7 @@ ScanNet exported folder and .sens, TUM RGB-D, Waymo v1 TFRecord and v2 Parquet),
 from __future__ import annotations
 
 import dataclasses
+import errno
 import io
 import json
 import os
@@ -14,11 +15,12 @@ import sys
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import BinaryIO, Dict, List, Optional, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import torch
 from nerfstudio.data.dataparsers.base_dataparser import (
     DataParserConfig,
     DataparserOutputs,
@@ -612,3 +614,33 @@ def flip_tensor_bytes(checkpoint: bytes) -> bytes:
     for offset in range(middle, middle + 4):
         flipped[offset] ^= 0x5A
     return bytes(flipped)
+
+
+class FullDisk(io.RawIOBase):
+    """A file on a disk that fills up after `room` bytes: a write beyond raises OSError(ENOSPC), as the OS's does."""
+
+    def __init__(self, file: BinaryIO, room: int) -> None:
+        super().__init__()
+        self.file = file
+        self.room = room
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        if len(data) > self.room:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self.file.write(data)
+
+
+def fill_the_disk_at_checkpoint(monkeypatch, save_number: int = 1) -> None:
+    """From the `save_number`-th torch.save on, the disk is full after 1000 bytes of the checkpoint (torch's zip
+    writer meets the OSError and raises its own RuntimeError, as on a real full disk)."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        real_save(obj, file if len(calls) < save_number else FullDisk(file, room=1000), *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", save)

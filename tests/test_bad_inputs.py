@@ -33,6 +33,7 @@ from helpers import (
     corrupt,
     demo_parser,
     edit_transforms,
+    fill_the_disk_at_checkpoint,
     flip_tensor_bytes,
     ns_train_command,
     numbered_frames,
@@ -85,6 +86,10 @@ class BadInput:
     build: Build
     fails_in: Literal["setup", "train"] = "setup"
     """setup: before any training step; train: once training runs (an image is read when its task opens)."""
+    environment: Optional[Callable[[pytest.MonkeyPatch], None]] = None
+    """What goes wrong around the run rather than in its input (a disk that fills up), set up before it starts."""
+    as_root: bool = True
+    """Whether the case can happen to root (who writes into read-only folders)."""
 
 
 # ---- builders ----
@@ -234,6 +239,14 @@ def flipped_bytes_in_a_tensor(context: Context) -> Path:
     return folder
 
 
+def read_only_output_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = context.earlier.parents[2] / "read-only"
+    folder.mkdir(mode=0o555)
+    config = earlier_run_config()
+    config.experiment_name = folder.name
+    return config, f"{folder / 'continual-ngp'}: permission denied: the folder is read-only for this user"
+
+
 def empty_folder(context: Context) -> Path:
     (context.scratch / "empty").mkdir()
     return context.scratch / "empty"
@@ -312,6 +325,16 @@ CORPUS = [
     ),
     BadInput("run-folder-of-an-earlier-run", reuse_earlier_folder),
     BadInput(
+        "disk-full-during-a-checkpoint",
+        lambda context: (
+            earlier_run_config(),
+            "nerfstudio_models/step-000000001.ckpt: cannot be written (no space left on the device)",
+        ),
+        fails_in="train",
+        environment=fill_the_disk_at_checkpoint,
+    ),
+    BadInput("read-only-output-folder", read_only_output_folder, as_root=False),
+    BadInput(
         "resume-flipped-bytes-in-a-tensor",
         resume(lambda d: f"{d / 'step-000000001.ckpt'}: corrupt checkpoint (archive/data/", flipped_bytes_in_a_tensor),
     ),
@@ -384,10 +407,19 @@ def exit_line(config: ContinualTrainerConfig) -> object:
     return exit_info.value.code
 
 
-@pytest.mark.parametrize("case", CORPUS, ids=[case.name for case in CORPUS])
-def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInput, earlier: Path, tmp_path):
+ROOT = pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders (run as another user)")
+
+
+@pytest.mark.parametrize(
+    "case", [pytest.param(case, id=case.name, marks=[] if case.as_root else [ROOT]) for case in CORPUS]
+)
+def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(
+    case: BadInput, earlier: Path, tmp_path, monkeypatch
+):
     before = digest(earlier)
     config, message = case.build(Context(scratch=tmp_path, earlier=earlier))
+    if case.environment is not None:
+        case.environment(monkeypatch)
     config.output_dir = earlier.parents[2]
     if config.timestamp != earlier.name:
         config.timestamp = case.name

@@ -4,6 +4,7 @@ panel in the viewer."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Literal, Optional, Type
@@ -14,6 +15,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 
+from continual_nerf.atomic_files import CAUSES, describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
     check_method,
     checkpoint_steps,
@@ -26,7 +28,7 @@ from continual_nerf.checkpoints import (
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
+from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
 from continual_nerf.nerfstudio_compat import set_resume_step
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
@@ -77,7 +79,24 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
                 f"{self.method_name}: error: {base_dir} already holds a run; choose another --timestamp or "
                 f"--experiment-name, or continue that run with --load-dir {self.get_checkpoint_dir()}"
             )
-        super().save_config()
+        try:
+            super().save_config()
+        except OSError as error:  # a read-only output folder, a full disk
+            raise SystemExit(f"{self.method_name}: error: {error.filename}: {describe(error)}") from None
+        for folder in (base_dir, source):
+            for stale in remove_stale_partials(folder) if folder is not None else []:
+                CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
+
+
+def failure_line(error: Exception) -> Optional[str]:
+    """The line a run ends with for bad input (an image of a task released mid-run, ...) or a file it cannot write
+    (nerfstudio's own files included); None for anything else, whose traceback is worth seeing."""
+    if isinstance(error, ContinualNerfError):
+        return str(error)
+    cause = os_error_of(error)
+    if cause is not None and cause.errno in CAUSES:
+        return f"{cause.filename}: {describe(cause)}"
+    return None
 
 
 class ContinualTrainer(Trainer):
@@ -121,15 +140,17 @@ class ContinualTrainer(Trainer):
 
     def train(self) -> None:
         accuracy = self.pipeline.accuracy
-        accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
         try:
+            accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
             super().train()
         except Exception as error:
             if not accuracy.finished:
                 accuracy.status = "failed"
-                accuracy.write(self.base_dir)
-            if isinstance(error, ContinualNerfError):  # for instance an image of a task released mid-run
-                raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+                with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
+                    accuracy.write(self.base_dir)
+            line = failure_line(error)
+            if line is not None:
+                raise SystemExit(f"{self.config.method_name}: error: {line}") from None
             raise
 
     def _load_checkpoint(self) -> None:
