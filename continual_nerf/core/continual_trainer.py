@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Type
+from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
@@ -15,7 +15,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 
-from continual_nerf.atomic_files import CAUSES, describe, os_error_of, remove_stale_partials
+from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
     check_method,
     checkpoint_steps,
@@ -30,6 +30,7 @@ from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
 from continual_nerf.nerfstudio_compat import set_resume_step
+from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
 
@@ -55,10 +56,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
 
     def setup(self, **kwargs: Any) -> Any:
-        try:
+        with one_line_exit(self.method_name):
             return super().setup(**kwargs)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.method_name}: error: {error}") from None
 
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes from, if any."""
@@ -67,36 +66,49 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
 
     def save_config(self) -> None:
-        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten."""
-        base_dir = self.get_base_dir()
-        source = self.resume_source()
-        continuing_in_place = source is not None and source.resolve() == base_dir.resolve()
-        holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
-            self.get_checkpoint_dir().is_dir() and checkpoint_steps(self.get_checkpoint_dir())
-        )
-        if holds_a_run and not continuing_in_place:
-            raise SystemExit(
-                f"{self.method_name}: error: {base_dir} already holds a run; choose another --timestamp or "
-                f"--experiment-name, or continue that run with --load-dir {self.get_checkpoint_dir()}"
-            )
-        try:
+        """Claim the run folder for the run's life, then write nerfstudio's config.yml there, unless the folder holds
+        another run's results (they would be overwritten); temporary files of killed saves are removed."""
+        base_dir, source = self.get_base_dir(), self.resume_source()
+        with one_line_exit(self.method_name):
+            previous = claim_run_folder(base_dir)
+            if previous is not None:
+                CONSOLE.print(
+                    f"{base_dir}: process {previous}, which held it, is no longer running", markup=False, soft_wrap=True
+                )
+            if self._holds_another_run(base_dir, source):
+                release_run_folder(base_dir)
+                raise ContinualConfigError(
+                    f"{base_dir} already holds a run; choose another --timestamp or --experiment-name, or continue "
+                    f"that run with --load-dir {self.get_checkpoint_dir()}"
+                )
             super().save_config()
-        except OSError as error:  # a read-only output folder, a full disk
-            raise SystemExit(f"{self.method_name}: error: {error.filename}: {describe(error)}") from None
         for folder in (base_dir, source):
             for stale in remove_stale_partials(folder) if folder is not None else []:
                 CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
 
+    def _holds_another_run(self, base_dir: Path, source: Optional[Path]) -> bool:
+        """Whether `base_dir` holds results of a run this one does not continue."""
+        holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
+            self.get_checkpoint_dir().is_dir() and bool(checkpoint_steps(self.get_checkpoint_dir()))
+        )
+        return holds_a_run and not (source is not None and source.resolve() == base_dir.resolve())
 
-def failure_line(error: Exception) -> Optional[str]:
-    """The line a run ends with for bad input (an image of a task released mid-run, ...) or a file it cannot write
-    (nerfstudio's own files included); None for anything else, whose traceback is worth seeing."""
-    if isinstance(error, ContinualNerfError):
-        return str(error)
-    cause = os_error_of(error)
-    if cause is not None and cause.errno in CAUSES:
-        return f"{cause.filename}: {describe(cause)}"
-    return None
+
+@contextlib.contextmanager
+def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
+    """End the process with one line for bad input (an option, a dataset file, an image of a task released mid-run)
+    or a file it cannot write, nerfstudio's own included; anything else keeps its traceback, which is worth seeing."""
+    try:
+        yield
+    except Exception as error:
+        cause = os_error_of(error)
+        if isinstance(error, ContinualNerfError):
+            line = str(error)
+        elif cause is not None and cause.filename is not None:
+            line = f"{cause.filename}: {describe(cause)}"
+        else:
+            raise
+        raise SystemExit(f"{method_name}: error: {line}") from None
 
 
 class ContinualTrainer(Trainer):
@@ -115,10 +127,8 @@ class ContinualTrainer(Trainer):
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        try:
+        with one_line_exit(self.config.method_name):
             super().setup(test_mode)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.config.method_name}: error: {error}") from None
         warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
         if isinstance(self.viewer_state, Viewer):
             pipeline = self.pipeline
@@ -139,18 +149,22 @@ class ContinualTrainer(Trainer):
         return cap
 
     def train(self) -> None:
+        try:
+            with one_line_exit(self.config.method_name):
+                self._train_saying_so_if_it_fails()
+        finally:
+            release_run_folder(self.base_dir)
+
+    def _train_saying_so_if_it_fails(self) -> None:
         accuracy = self.pipeline.accuracy
         try:
             accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
             super().train()
-        except Exception as error:
+        except Exception:
             if not accuracy.finished:
                 accuracy.status = "failed"
                 with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
                     accuracy.write(self.base_dir)
-            line = failure_line(error)
-            if line is not None:
-                raise SystemExit(f"{self.config.method_name}: error: {line}") from None
             raise
 
     def _load_checkpoint(self) -> None:
