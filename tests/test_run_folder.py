@@ -1,22 +1,30 @@
-"""A run folder belongs to one run at a time: a second start into it fails with one line, a killed run's claim is
-taken over."""
+"""A run's life in its folder: one run at a time holds the folder (a second start fails with one line, a killed run's
+claim is taken over); Ctrl-C and SIGTERM save the current step, mark the run interrupted, print the command that
+resumes it and exit 130 / 143, and the resumed run ends as the uninterrupted one."""
 
 from __future__ import annotations
 
 import errno
 import os
+import shlex
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config
+from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config, train
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.scripts.train import train_loop
 
 from continual_nerf import run_lock
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.interrupts import resume_command
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.recipes import set_up_like_ns_train
 from continual_nerf.run_lock import LOCK_NAME, claim_run_folder, release_run_folder
 
 HOLD = (
@@ -119,3 +127,140 @@ def test_two_ns_train_started_at_once_into_one_folder_leave_one_runs_results(tmp
     checkpoints = sorted(path.name for path in (folder / "nerfstudio_models").iterdir())
     assert checkpoints == [f"step-{step:09d}.ckpt" for step in steps]
     assert not (folder / LOCK_NAME).exists()
+
+
+# ---- Ctrl-C and SIGTERM ----
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (
+            ["/venv/bin/ns-train", "continual-ngp", "--vis", "viewer", "continual-demo", "--data", "my scene"],
+            "ns-train continual-ngp --load-dir /runs/x/nerfstudio_models --vis viewer continual-demo --data 'my scene'",
+        ),
+        (
+            ["ns-train", "continual-ngp", "--load-dir", "old", "--load-step=7", "continual-tum", "--data", "d"],
+            "ns-train continual-ngp --load-dir /runs/x/nerfstudio_models continual-tum --data d",
+        ),
+        (["/usr/bin/pytest", "tests"], "its ns-train command with --load-dir /runs/x/nerfstudio_models"),
+    ],
+)
+def test_the_resume_command_is_the_run_s_own_with_load_dir(argv, expected):
+    assert resume_command(Path("/runs/x/nerfstudio_models"), argv) == expected
+
+
+def three_tasks(run_dir: Path, timestamp: str) -> ContinualTrainerConfig:
+    config = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=4)
+    config.timestamp = timestamp
+    config.steps_per_save = 10**9  # checkpoints at the end of each task only: steps 3, 7, 11
+    return config
+
+
+def accuracy_of(config: ContinualTrainerConfig) -> AccuracyMatrix:
+    return AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+
+
+@pytest.mark.slow
+def test_sigterm_saves_the_step_marks_the_run_interrupted_and_its_resume_ends_as_the_uninterrupted_run(
+    run_dir, capsys, single_thread
+):
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    uninterrupted = three_tasks(run_dir, "uninterrupted")
+    train(uninterrupted)
+
+    interrupted = three_tasks(run_dir, "interrupted")
+    interrupted.save_config()
+    trainer = set_up_like_ns_train(interrupted)
+
+    def sigterm_during_step_5(step: int) -> None:
+        if step == 5:  # task 2, between its checkpoints
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], sigterm_during_step_5))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        trainer.train()
+    assert exit_info.value.code == 143
+    checkpoints = interrupted.get_checkpoint_dir()
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"continual-ngp: interrupted by SIGTERM: step 5 saved; resume with: its ns-train command with --load-dir "
+        f"{checkpoints}"
+    )
+    assert sorted(path.name for path in checkpoints.iterdir()) == ["step-000000003.ckpt", "step-000000005.ckpt"]
+    matrix = accuracy_of(interrupted)
+    assert (matrix.status, matrix.finished, len(matrix.psnr)) == ("interrupted", False, 1)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers, "handlers restored"
+    assert not (interrupted.get_base_dir() / LOCK_NAME).exists(), "the folder is released"
+
+    resumed = three_tasks(run_dir, "resumed")
+    resumed.load_dir = checkpoints
+    train(resumed)
+    matrix = accuracy_of(resumed)
+    assert matrix.status == "finished" and matrix.steps == accuracy_of(uninterrupted).steps == [3, 7, 11]
+    assert matrix.psnr == accuracy_of(uninterrupted).psnr, "resumed from step 5, the run ends as the uninterrupted one"
+
+
+NUM_FRAMES, NUM_TASKS, ITERATIONS_PER_TASK, STEPS_PER_SAVE = 18, 3, 8, 10
+"""Task 2 spans steps 8..15: the periodic checkpoint of step 10 is written in the middle of it."""
+
+
+def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
+    """Send `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into place)."""
+    deadline = time.monotonic() + timeout
+    while not checkpoint.exists():
+        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
+        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
+        time.sleep(0.01)
+    os.kill(process.pid, number)
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_ns_train_saves_prints_the_resume_command_exits_130_and_that_command_finishes_the_run(tmp_path):
+    outputs = tmp_path / "outputs"
+    options = [
+        *("--pipeline.datamanager.num-tasks", str(NUM_TASKS)),
+        *("--pipeline.datamanager.iterations-per-task", str(ITERATIONS_PER_TASK)),
+        *("--steps-per-save", str(STEPS_PER_SAVE)),
+    ]
+    demo = ["continual-demo", "--data", str(demo_parser().data), "--num-frames", str(NUM_FRAMES)]
+    command = ns_train_command(outputs, "interrupted", options, demo)
+    folder = outputs / "unnamed" / "continual-ngp" / "interrupted"
+    with (tmp_path / "interrupted.log").open("w+") as log:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log, env=SUBPROCESS_ENV)
+        signal_when_saved(process, folder / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt", signal.SIGINT)
+        assert process.wait(timeout=600) == 130
+        log.seek(0)
+        stderr = log.read()
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
+    line = stderr.strip().splitlines()[-1]
+    said, resume = line.split(" saved; resume with: ")
+    step = int(said.removeprefix("continual-ngp: interrupted by SIGINT: step "))
+    assert STEPS_PER_SAVE <= step < NUM_TASKS * ITERATIONS_PER_TASK - 1
+    assert (folder / "nerfstudio_models" / f"step-{step:09d}.ckpt").is_file()
+    assert accuracy_of_folder(folder).status == "interrupted"
+    expected = shlex.join(["ns-train", command[1], "--load-dir", str(folder / "nerfstudio_models"), *command[2:]])
+    assert resume == expected, "the exact command: ns-train's own arguments, --load-dir after the method"
+
+    resumed = subprocess.run(
+        [command[0], *shlex.split(resume)[1:]],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=SUBPROCESS_ENV,
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    after_resume = accuracy_of_folder(folder)  # the same --timestamp: it continues in its own folder
+
+    config = yaml.load((folder / "config.yml").read_text(), Loader=yaml.Loader)
+    config.timestamp, config.load_dir = "uninterrupted", None
+    train_loop(local_rank=0, world_size=1, config=config)
+    uninterrupted = accuracy_of_folder(config.get_base_dir())
+    assert after_resume.status == "finished" and after_resume.steps == uninterrupted.steps == [7, 15, 23]
+    differences = [abs(a - b) for ra, rb in zip(after_resume.psnr, uninterrupted.psnr) for a, b in zip(ra, rb)]
+    assert max(differences) <= 0.3, f"resumed {after_resume.psnr} vs uninterrupted {uninterrupted.psnr}"
+
+
+def accuracy_of_folder(folder: Path) -> AccuracyMatrix:
+    return AccuracyMatrix.read(folder / ACCURACY_MATRIX_FILENAME)

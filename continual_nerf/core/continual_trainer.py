@@ -5,11 +5,14 @@ panel in the viewer."""
 from __future__ import annotations
 
 import contextlib
+import signal
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -28,6 +31,7 @@ from continual_nerf.checkpoints import (
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
 from continual_nerf.nerfstudio_compat import set_resume_step
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
@@ -121,8 +125,23 @@ class ContinualTrainer(Trainer):
         super().__init__(config, local_rank, world_size)
         self.panel: Optional[ContinualPanel] = None
         """The viewer's continual-learning panel, when the viewer runs."""
+        self._resumed_from: Optional[Path] = None
+        """The checkpoint folder this run resumed from, if any."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
+        try:
+            self._set_up(test_mode)
+        except BaseException:
+            INTERRUPTS.restore()
+            raise
+        location = TrainingCallbackLocation
+        self.callbacks += [
+            TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
+            TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
+        ]
+
+    def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
         self.config.max_num_iterations = self._iterations_to_run()
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
@@ -149,11 +168,47 @@ class ContinualTrainer(Trainer):
         return cap
 
     def train(self) -> None:
+        INTERRUPTS.deferring, INTERRUPTS.on_signal = True, self._leave_pause
         try:
             with one_line_exit(self.config.method_name):
                 self._train_saying_so_if_it_fails()
         finally:
+            INTERRUPTS.restore()
             release_run_folder(self.base_dir)
+
+    def _leave_pause(self) -> None:
+        """A signal while the viewer has paused training: the next iteration must come, to answer it."""
+        if self.training_state == "paused":
+            self.training_state = "training"
+
+    def _answer_interrupt(self, step: int) -> None:
+        """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
+        resume it and exit with 128 + the signal."""
+        number = INTERRUPTS.received
+        if number is None:
+            return
+        if step > self._start_step:
+            self.save_checkpoint(step - 1)
+            how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
+        elif self._resumed_from is not None:
+            how = f"no step trained since resuming; resume with: {resume_command(self._resumed_from, sys.argv)}"
+        else:
+            how = "no step trained yet, nothing to resume"
+        self.pipeline.accuracy.status = "interrupted"
+        self.pipeline.accuracy.write(self.base_dir)
+        print(
+            f"{self.config.method_name}: interrupted by {signal.Signals(number).name}: {how}",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(EXIT_CODES[number])
+
+    def _after_last_step(self, step: int) -> None:
+        """Training is over and saved: from now on a signal (the viewer may stay open) ends the process at once."""
+        INTERRUPTS.deferring = False
+        if INTERRUPTS.received is not None:
+            print(f"{self.config.method_name}: interrupted after its last step; the run is complete", file=sys.stderr)
+            raise SystemExit(EXIT_CODES[INTERRUPTS.received])
 
     def _train_saying_so_if_it_fails(self) -> None:
         accuracy = self.pipeline.accuracy
@@ -176,6 +231,7 @@ class ContinualTrainer(Trainer):
         else:
             return super()._load_checkpoint()
         state = read_checkpoint(path)
+        self._resumed_from = path.parent
         check_method(state, path, self.config.method_name)
         self._load_states(state, path)
         pipeline = self.pipeline

@@ -38,6 +38,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
+from continual_nerf.core.interrupts import INTERRUPTS
 from continual_nerf.dataparsers.capture import CaptureOutputs, fit_into_box, fitted_poses
 from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import DatasetError, first_line
@@ -275,9 +276,10 @@ class CaptureTasks:
         )
 
     def wait_until(self, done: Callable[[], bool]) -> None:
-        """Poll every --poll-seconds (sleeping in between) until `done()` or the end of the capture."""
+        """Poll every --poll-seconds (sleeping in between) until `done()`, the end of the capture or Ctrl-C (which
+        the trainer answers at the next iteration)."""
         self.poll()
-        while not done() and not self.ended:
+        while not done() and not self.ended and not INTERRUPTS.pending():
             time.sleep(self.config.poll_seconds)
             self.poll()
 
