@@ -30,6 +30,7 @@ from nerfstudio.data.utils import colmap_parsing_utils as colmap
 from PIL import Image
 
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.dataparsers import waymo_v2
 from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -71,7 +72,8 @@ def tiny_config(
         train_num_rays_per_batch=rays_per_batch,
         replay=method.pipeline.datamanager.replay if replay is None else replay,
     )
-    config.pipeline.model = dataclasses.replace(config.pipeline.model, compile=compile)
+    if isinstance(config.pipeline.model, ContinualNGPModelConfig):  # the NeRF baselines do not compile
+        config.pipeline.model = dataclasses.replace(config.pipeline.model, compile=compile)
     return config
 
 

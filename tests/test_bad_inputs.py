@@ -61,7 +61,13 @@ from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, continual_ngp_ewc, continual_ngp_joint
+from continual_nerf.method_configs import (
+    CONTINUAL_NERF_MEIL,
+    CONTINUAL_NGP,
+    CONTINUAL_NGP_INCRE,
+    continual_ngp_ewc,
+    continual_ngp_joint,
+)
 from continual_nerf.streaming.replay_capture import frame_json, write_frame, write_marker
 
 
@@ -192,6 +198,11 @@ def corrupt_tfrecord(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     return corpus_run(parser), f"{segment}: record 1 has corrupt data (its CRC does not match)"
 
 
+def with_model_options(config: ContinualTrainerConfig, **options: Any) -> ContinualTrainerConfig:
+    config.pipeline.model = dataclasses.replace(config.pipeline.model, **options)
+    return config
+
+
 def earlier_run_config(
     num_tasks: int = 2, method: ContinualTrainerConfig = CONTINUAL_NGP, **datamanager_options
 ) -> ContinualTrainerConfig:
@@ -275,6 +286,16 @@ CORPUS = [
     BadInput(
         "rays-per-batch-0",
         option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
+    ),
+    *(
+        BadInput(
+            f"eval-rays-per-chunk-{chunk}-{method.method_name}",
+            lambda context, chunk=chunk, method=method: (
+                with_model_options(earlier_run_config(method=method), eval_num_rays_per_chunk=chunk),
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {chunk}",
+            ),
+        )
+        for chunk, method in ((0, CONTINUAL_NGP), (-4096, CONTINUAL_NGP), (0, CONTINUAL_NERF_MEIL))
     ),
     BadInput("demo-no-frames", option("continual-demo --num-frames must be at least 1, got 0", {"num_frames": 0})),
     BadInput("demo-width-0", option("continual-demo --width must be at least 1, got 0", {"width": 0})),
