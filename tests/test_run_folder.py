@@ -10,19 +10,20 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, tiny_config, train
+from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, stream_config, tiny_config, train
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf import run_lock
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.core.interrupts import resume_command
+from continual_nerf.core.interrupts import INTERRUPTS, resume_command
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.recipes import set_up_like_ns_train
 from continual_nerf.run_lock import LOCK_NAME, claim_run_folder, release_run_folder
@@ -264,3 +265,21 @@ def test_ctrl_c_in_ns_train_saves_prints_the_resume_command_exits_130_and_that_c
 
 def accuracy_of_folder(folder: Path) -> AccuracyMatrix:
     return AccuracyMatrix.read(folder / ACCURACY_MATRIX_FILENAME)
+
+
+def test_ctrl_c_while_a_run_sets_up_ends_it_at_once_with_one_line(tmp_path, capsys):
+    """Set-up may wait long (here for a capture's first frames): Ctrl-C ends it with 130, no traceback."""
+    config = stream_config(tmp_path / "outputs", tmp_path / "capture", "wait", frames_per_task=2, iterations_per_task=1)
+    config.save_config()
+
+    def ctrl_c_once_handled() -> None:
+        while signal.getsignal(signal.SIGINT) != INTERRUPTS._handle:  # installed when set-up starts
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=ctrl_c_once_handled, daemon=True).start()
+    with pytest.raises(SystemExit) as exit_info:
+        config.setup(local_rank=0, world_size=1).setup()  # waits for the first task's frames, which never come
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "Stopped by SIGINT; the checkpoints written so far are kept"
+    assert signal.getsignal(signal.SIGINT) == signal.default_int_handler, "nerfstudio's own handler is back"

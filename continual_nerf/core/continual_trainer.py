@@ -33,7 +33,7 @@ from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
-from continual_nerf.nerfstudio_compat import set_resume_step
+from continual_nerf.nerfstudio_compat import first_step, leave_pause, set_resume_step
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
@@ -132,9 +132,8 @@ class ContinualTrainer(Trainer):
         INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
         try:
             self._set_up(test_mode)
-        except BaseException:
-            INTERRUPTS.restore()
-            raise
+        finally:
+            INTERRUPTS.restore()  # train() installs them again: a trainer only set up leaves no handler behind
         location = TrainingCallbackLocation
         self.callbacks += [
             TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
@@ -168,7 +167,9 @@ class ContinualTrainer(Trainer):
         return cap
 
     def train(self) -> None:
-        INTERRUPTS.deferring, INTERRUPTS.on_signal = True, self._leave_pause
+        INTERRUPTS.install()
+        # a signal while the viewer has paused training: the next iteration must come, to answer it
+        INTERRUPTS.deferring, INTERRUPTS.on_signal = True, lambda: leave_pause(self)
         try:
             with one_line_exit(self.config.method_name):
                 self._train_saying_so_if_it_fails()
@@ -176,18 +177,13 @@ class ContinualTrainer(Trainer):
             INTERRUPTS.restore()
             release_run_folder(self.base_dir)
 
-    def _leave_pause(self) -> None:
-        """A signal while the viewer has paused training: the next iteration must come, to answer it."""
-        if self.training_state == "paused":
-            self.training_state = "training"
-
     def _answer_interrupt(self, step: int) -> None:
         """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
         resume it and exit with 128 + the signal."""
         number = INTERRUPTS.received
         if number is None:
             return
-        if step > self._start_step:
+        if step > first_step(self):
             self.save_checkpoint(step - 1)
             how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
         elif self._resumed_from is not None:
@@ -242,7 +238,7 @@ class ContinualTrainer(Trainer):
         restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
-            f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
+            f"Resuming from {path} at step {first_step(self)}: task {pipeline.task.current + 1}/"
             f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
         )
 

@@ -36,15 +36,16 @@ class Interrupts:
         self._previous: Dict[int, Any] = {}
 
     def install(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return  # Python runs signal handlers in the main thread only; a run driven from another keeps the defaults
-        for number in EXIT_CODES:
-            self._previous.setdefault(number, signal.signal(number, self._handle))
+        if in_main_thread():  # only the main thread may set handlers; a run driven from another keeps the defaults
+            for number in EXIT_CODES:
+                self._previous.setdefault(number, signal.signal(number, self._handle))
 
     def restore(self) -> None:
-        for number, handler in self._previous.items():
-            signal.signal(number, handler)
-        self._previous.clear()
+        """The handlers from before install (from the main thread: another leaves them for it), nothing pending."""
+        if in_main_thread():
+            for number, handler in self._previous.items():
+                signal.signal(number, handler)
+            self._previous.clear()
         self.received, self.deferring = None, False
 
     def _handle(self, number: int, frame: Optional[FrameType]) -> None:
@@ -58,6 +59,10 @@ class Interrupts:
 
     def pending(self) -> bool:
         return self.received is not None
+
+
+def in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
 
 
 INTERRUPTS = Interrupts()
