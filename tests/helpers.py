@@ -11,7 +11,9 @@ import io
 import json
 import os
 import struct
+import subprocess
 import sys
+import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -142,6 +144,22 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
     }
     flags = [item for name, value in tiny.items() for item in (f"--{name}", str(value))]
     return [str(Path(sys.executable).with_name("ns-train")), "continual-ngp", *flags, *options, *dataparser]
+
+
+def run_ns_train(command: Sequence[str]) -> subprocess.CompletedProcess:
+    """Run an ns-train command line to its end (one thread), capturing its output as text."""
+    return subprocess.run(command, check=False, capture_output=True, text=True, timeout=600, env=SUBPROCESS_ENV)
+
+
+def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
+    """Send signal `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into
+    place)."""
+    deadline = time.monotonic() + timeout
+    while not checkpoint.exists():
+        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
+        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
+        time.sleep(0.01)
+    os.kill(process.pid, number)
 
 
 def train(config: ContinualTrainerConfig) -> ContinualTrainer:

@@ -42,6 +42,7 @@ from helpers import (
     tiny_config,
     train,
     v1_frame,
+    write_exported,
     write_sens,
     write_sequence,
     write_transforms,
@@ -178,6 +179,27 @@ def tum_image_of_another_size(context: Context) -> Tuple[ContinualTrainerConfig,
     return corpus_run(ContinualTumDataParserConfig(data=sequence)), f"{image}: image is 16x12 pixels, its camera 32x24"
 
 
+def zero_focal_length(folder: Path) -> str:
+    edit_transforms(folder, frame_6={"fl_x": 0})
+    return f"{folder / 'transforms.json'} frame images/frame_6.png: focal lengths must be finite and positive"
+
+
+def tum_resized_to_another_aspect_ratio(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    sequence = write_sequence(context.scratch / "rgbd_dataset_freiburg1_desk")
+    for image in (sequence / "rgb").iterdir():
+        Image.new("RGB", (32, 32)).save(image)
+    message = f"{sequence} (sensor calibration): the images are 32x32 pixels, the calibration is for 640x480"
+    return corpus_run(ContinualTumDataParserConfig(data=sequence)), message
+
+
+def scannet_intrinsics_nan(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = write_exported(context.scratch / "scene0101_00", scannet_poses(6))
+    intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
+    intrinsic_file.write_text(intrinsic_file.read_text().replace("1.134000000000000000e+03", "nan", 1))
+    message = f"{intrinsic_file}: focal lengths must be finite and positive, got fx=nan"
+    return corpus_run(ContinualScanNetDataParserConfig(data=folder)), message
+
+
 def tum_without_groundtruth(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     sequence = write_sequence(context.scratch / "rgbd_dataset_freiburg1_desk")
     (sequence / "groundtruth.txt").unlink()
@@ -233,21 +255,22 @@ def resume(
     return build
 
 
-def truncated_checkpoint(context: Context) -> Path:
-    folder = context.scratch / "nerfstudio_models"
-    folder.mkdir()
+def broken_copy(context: Context, name: str, damage: Callable[[bytes], bytes]) -> Path:
+    """A checkpoint folder holding the earlier run's step-1 checkpoint, damaged."""
+    folder = context.scratch / name / "nerfstudio_models"
+    folder.mkdir(parents=True)
     original = context.earlier / "nerfstudio_models" / "step-000000001.ckpt"
-    (folder / original.name).write_bytes(original.read_bytes()[:5000])
+    (folder / original.name).write_bytes(damage(original.read_bytes()))
     return folder
+
+
+def truncated_checkpoint(context: Context) -> Path:
+    return broken_copy(context, "truncated", lambda data: data[:5000])
 
 
 def flipped_bytes_in_a_tensor(context: Context) -> Path:
-    """The earlier run's step-1 checkpoint with four bytes flipped inside its largest tensor (the hash grid)."""
-    folder = context.scratch / "nerfstudio_models"
-    folder.mkdir()
-    original = context.earlier / "nerfstudio_models" / "step-000000001.ckpt"
-    (folder / original.name).write_bytes(flip_tensor_bytes(original.read_bytes()))
-    return folder
+    """Four bytes flipped inside the checkpoint's largest tensor (the hash grid)."""
+    return broken_copy(context, "flipped", flip_tensor_bytes)
 
 
 def read_only_output_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]:
@@ -308,6 +331,9 @@ CORPUS = [
     BadInput("16-bit-image", nerfstudio_capture(sixteen_bit_image), fails_in="train"),
     BadInput("image-size-differs-in-one-camera", tum_image_of_another_size, fails_in="train"),
     BadInput("tum-missing-groundtruth", tum_without_groundtruth),
+    BadInput("transforms-zero-focal-length", nerfstudio_capture(zero_focal_length)),
+    BadInput("tum-resized-to-another-aspect-ratio", tum_resized_to_another_aspect_ratio),
+    BadInput("scannet-intrinsics-nan", scannet_intrinsics_nan),
     BadInput("scannet-truncated-sens", truncated_sens),
     BadInput("waymo-corrupt-record", corrupt_tfrecord),
     BadInput(
@@ -492,8 +518,19 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     demo = ["continual-demo", "--data", str(DEMO_CACHE), "--num-frames", "12", "--width", "16", "--height", "12"]
     capture = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
     image_line = truncated_image_of_task_2(capture)
-    checkpoints = truncated_checkpoint(context)
+    truncated, flipped = truncated_checkpoint(context), flipped_bytes_in_a_tensor(context)
     tasks = ["--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "2"]
+    earlier_demo = [
+        "continual-demo",
+        "--data",
+        str(DEMO_CACHE),
+        "--num-frames",
+        "16",
+        "--width",
+        "24",
+        "--height",
+        "18",
+    ]
     return [
         (
             "num-tasks-0",
@@ -503,21 +540,13 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
         ("truncated-image-released-mid-run", [*tasks, "continual-nerfstudio", "--data", str(capture)], image_line),
         (
             "resume-truncated-checkpoint",
-            [
-                *tasks,
-                "--load-dir",
-                str(checkpoints),
-                "continual-demo",
-                "--data",
-                str(DEMO_CACHE),
-                "--num-frames",
-                "16",
-                "--width",
-                "24",
-                "--height",
-                "18",
-            ],
-            f"{checkpoints / 'step-000000001.ckpt'}: not a readable checkpoint (",
+            [*tasks, "--load-dir", str(truncated), *earlier_demo],
+            f"{truncated / 'step-000000001.ckpt'}: not a readable checkpoint (",
+        ),
+        (
+            "resume-flipped-bytes-in-a-tensor",
+            [*tasks, "--load-dir", str(flipped), *earlier_demo],
+            f"{flipped / 'step-000000001.ckpt'}: corrupt checkpoint (",
         ),
     ]
 

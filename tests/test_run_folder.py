@@ -16,7 +16,16 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, stream_config, tiny_config, train
+from helpers import (
+    SUBPROCESS_ENV,
+    demo_parser,
+    ns_train_command,
+    run_ns_train,
+    signal_when_saved,
+    stream_config,
+    tiny_config,
+    train,
+)
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
@@ -206,16 +215,6 @@ NUM_FRAMES, NUM_TASKS, ITERATIONS_PER_TASK, STEPS_PER_SAVE = 18, 3, 8, 10
 """Task 2 spans steps 8..15: the periodic checkpoint of step 10 is written in the middle of it."""
 
 
-def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
-    """Send `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into place)."""
-    deadline = time.monotonic() + timeout
-    while not checkpoint.exists():
-        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
-        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
-        time.sleep(0.01)
-    os.kill(process.pid, number)
-
-
 @pytest.mark.slow
 def test_ctrl_c_in_ns_train_saves_prints_the_resume_command_exits_130_and_that_command_finishes_the_run(tmp_path):
     outputs = tmp_path / "outputs"
@@ -243,14 +242,7 @@ def test_ctrl_c_in_ns_train_saves_prints_the_resume_command_exits_130_and_that_c
     expected = shlex.join(["ns-train", command[1], "--load-dir", str(folder / "nerfstudio_models"), *command[2:]])
     assert resume == expected, "the exact command: ns-train's own arguments, --load-dir after the method"
 
-    resumed = subprocess.run(
-        [command[0], *shlex.split(resume)[1:]],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=SUBPROCESS_ENV,
-    )
+    resumed = run_ns_train([command[0], *shlex.split(resume)[1:]])
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     after_resume = accuracy_of_folder(folder)  # the same --timestamp: it continues in its own folder
 
