@@ -51,13 +51,13 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
 
     def validate(self) -> None:
         super().validate()
-        if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
-            raise ContinualConfigError(
-                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {self.eval_num_rays_per_chunk}"
-            )
         if not self.replay_sample_fraction > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
+            )
+        if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
+            raise ContinualConfigError(
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {self.eval_num_rays_per_chunk}"
             )
 
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
