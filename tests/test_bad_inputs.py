@@ -683,6 +683,11 @@ def deeply_nested_json(capture: Path, number: int) -> str:
     return "not a usable frame JSON (maximum recursion depth exceeded"
 
 
+def oversized_json(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").write_text(" " * (2 << 20) + "{}")
+    return "larger than 1 MiB, not a frame JSON; not read"
+
+
 def intrinsics(message: str, **changes: Any) -> Callable[[Path, int], str]:
     """A frame whose intrinsics are changed by `changes`; its warning line holds `message`."""
 
@@ -714,6 +719,7 @@ HOSTILE_FRAMES: Dict[str, Callable[[Path, int], str]] = {
     "json-fifo": json_fifo,
     "decompression-bomb": decompression_bomb,
     "deeply-nested-json": deeply_nested_json,
+    "oversized-json": oversized_json,
     "width-nan": intrinsics("image size w=nan h=18 must be whole numbers of at least 1", w=float("nan")),
     "focal-nan": intrinsics("focal lengths must be finite and positive, got fx=nan", fl_x=float("nan")),
     "focal-zero": intrinsics("focal lengths must be finite and positive, got fx=0", fl_x=0),

@@ -16,9 +16,9 @@ image does not decode yet, is retried on the next poll and the entries after it 
 
 The folder is another process's output and is read as untrusted input: only regular files whose real path lies
 inside the folder are opened (no absolute `file_path`, no `..` out of it, no symlink leading elsewhere, no FIFO), and
-a frame that can never be used (such a path, an image too large to decode, JSON nested too deeply, intrinsics that are
-not finite, positive and inside the image, an image of another size than the frame says) is skipped with one warning
-line naming it; training goes on.
+a frame that can never be used (such a path, an image too large to decode, JSON over 1 MiB or nested too deeply,
+intrinsics that are not finite, positive and inside the image, an image of another size than the frame says) is
+skipped with one warning line naming it; training goes on.
 """
 
 from __future__ import annotations
@@ -46,6 +46,9 @@ from continual_nerf.untrusted_files import open_inside, real_path_inside
 
 if TYPE_CHECKING:
     from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
+
+MAX_FRAME_JSON_BYTES = 1 << 20
+"""A frame JSON holds a few hundred bytes; a larger file is not read into memory."""
 
 ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
 """Entry kinds by file suffix; at equal sequence numbers a frame comes before the marker that follows it."""
@@ -106,8 +109,10 @@ def read_json(path: Path, folder: Path) -> object:
     """The content of a frame JSON: a regular file inside `folder`; half-written JSON is not ready yet."""
     try:
         with open_inside(path, folder) as file:
-            text = file.read().decode()
-        return json.loads(text)
+            content = file.read(MAX_FRAME_JSON_BYTES + 1)
+        if len(content) > MAX_FRAME_JSON_BYTES:
+            raise DatasetError(f"{path}: larger than {MAX_FRAME_JSON_BYTES >> 20} MiB, not a frame JSON; not read")
+        return json.loads(content.decode())
     except DatasetError:  # a ValueError, as json's errors are
         raise
     except FileNotFoundError:  # replaced or removed by the writer since the folder was listed
