@@ -108,6 +108,24 @@ def set_resume_step(trainer: Trainer, start_step: int) -> None:
     trainer.config.max_num_iterations -= start_step
 
 
+def first_step(trainer: Trainer) -> int:
+    """The step this process's training loop starts at: 0, or the one after the checkpoint a run resumed from.
+
+    Depends on: `Trainer._start_step` (private), where `Trainer.train` starts its loop.
+    """
+    return trainer._start_step
+
+
+def leave_pause(trainer: Trainer) -> None:
+    """Let nerfstudio's loop go on to its next iteration if the viewer has paused it.
+
+    Depends on: `Trainer.train` sleeping while `training_state == "paused"` and going on once it is "training", as
+    the viewer's Resume button sets it.
+    """
+    if trainer.training_state == "paused":
+        trainer.training_state = "training"
+
+
 def init_scene_without_frustums(viewer: Viewer, train_dataset: InputDataset, train_state: str) -> None:
     """Set up `viewer`'s scene (scene box, training state, ...) without drawing a frustum per training image.
 

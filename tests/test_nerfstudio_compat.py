@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import random
 import socket
+import threading
+from typing import List
 
 import numpy as np
 import pytest
 import torch
 from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import nn
 
@@ -18,7 +21,7 @@ from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
-from continual_nerf.recipes import small_model
+from continual_nerf.recipes import set_up_like_ns_train, small_model
 
 SCENE_BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
 
@@ -86,6 +89,27 @@ def test_a_resumed_run_ends_at_the_same_step_as_the_uninterrupted_one(tmp_path):
     trainer = train(resumed)
     matrix = AccuracyMatrix.read(resumed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     assert matrix.finished and matrix.steps == [1, 3] and trainer.step == 3
+    assert compat.first_step(trainer) == 2, "the loop started after the checkpoint's step"
+
+
+@pytest.mark.slow
+def test_leaving_the_viewer_s_pause_lets_the_loop_go_on(tmp_path):
+    """Depends on nerfstudio's loop waiting while `training_state` is "paused" (leave_pause)."""
+    config = tiny_config(tmp_path / "outputs", demo_parser(), num_tasks=2, iterations_per_task=2)
+    config.start_paused = True
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    steps: List[int] = []
+
+    def trained(step: int) -> None:
+        steps.append(step)
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], trained))
+    thread = threading.Thread(target=trainer.train, daemon=True)  # paused, it would wait for ever
+    thread.start()
+    compat.leave_pause(trainer)
+    thread.join(timeout=300)
+    assert not thread.is_alive() and steps == [0, 1, 2, 3], "the paused loop went on and trained every step"
 
 
 def _free_port() -> int:

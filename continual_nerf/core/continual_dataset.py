@@ -14,6 +14,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.untrusted_files import check_regular
 
 IMAGE_MODES = ("L", "RGB", "RGBA")
 """PIL modes of the images nerfstudio's InputDataset decodes correctly."""
@@ -91,8 +92,11 @@ def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
     """nerfstudio's image read, with a missing, unreadable, truncated or mis-sized file reported by name in one line."""
     filename = dataset._dataparser_outputs.image_filenames[image_idx]
     try:
+        check_regular(filename)  # nerfstudio opens the file by name: a FIFO put there would block it
         image = InputDataset.get_numpy_image(dataset, image_idx)
-    except (OSError, UnidentifiedImageError, ValueError, AssertionError) as error:
+    except DatasetError:
+        raise
+    except (OSError, UnidentifiedImageError, ValueError, AssertionError, Image.DecompressionBombError) as error:
         raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
     # the flat pixel numbering of a task assumes every image has its camera's size
     check_size(filename, (image.shape[1], image.shape[0]), dataset.cameras, image_idx)
@@ -105,9 +109,10 @@ def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
     for frame in frames:
         filename = dataset._dataparser_outputs.image_filenames[frame]
         try:
+            check_regular(filename)
             with Image.open(filename) as image:
                 size, mode = image.size, image.mode
-        except (OSError, UnidentifiedImageError) as error:
+        except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
             raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
         # nerfstudio reads other modes wrongly (palette indices as grey) or not at all (16-bit, two channels)
         if mode not in IMAGE_MODES:

@@ -4,17 +4,23 @@ panel in the viewer."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Type
+from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 
+from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
+    check_method,
     checkpoint_steps,
     find_checkpoint,
     read_checkpoint,
@@ -25,8 +31,10 @@ from continual_nerf.checkpoints import (
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
-from continual_nerf.nerfstudio_compat import set_resume_step
+from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
+from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
+from continual_nerf.nerfstudio_compat import first_step, leave_pause, set_resume_step
+from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
 
@@ -52,10 +60,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
 
     def setup(self, **kwargs: Any) -> Any:
-        try:
+        with one_line_exit(self.method_name):
             return super().setup(**kwargs)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.method_name}: error: {error}") from None
 
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes from, if any."""
@@ -64,19 +70,49 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
 
     def save_config(self) -> None:
-        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten."""
-        base_dir = self.get_base_dir()
-        source = self.resume_source()
-        continuing_in_place = source is not None and source.resolve() == base_dir.resolve()
+        """Claim the run folder for the run's life, then write nerfstudio's config.yml there, unless the folder holds
+        another run's results (they would be overwritten); temporary files of killed saves are removed."""
+        base_dir, source = self.get_base_dir(), self.resume_source()
+        with one_line_exit(self.method_name):
+            previous = claim_run_folder(base_dir)
+            if previous is not None:
+                CONSOLE.print(
+                    f"{base_dir}: process {previous}, which held it, is no longer running", markup=False, soft_wrap=True
+                )
+            if self._holds_another_run(base_dir, source):
+                release_run_folder(base_dir)
+                raise ContinualConfigError(
+                    f"{base_dir} already holds a run; choose another --timestamp or --experiment-name, or continue "
+                    f"that run with --load-dir {self.get_checkpoint_dir()}"
+                )
+            super().save_config()
+        for folder in (base_dir, source):
+            for stale in remove_stale_partials(folder) if folder is not None else []:
+                CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
+
+    def _holds_another_run(self, base_dir: Path, source: Optional[Path]) -> bool:
+        """Whether `base_dir` holds results of a run this one does not continue."""
         holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
-            self.get_checkpoint_dir().is_dir() and checkpoint_steps(self.get_checkpoint_dir())
+            self.get_checkpoint_dir().is_dir() and bool(checkpoint_steps(self.get_checkpoint_dir()))
         )
-        if holds_a_run and not continuing_in_place:
-            raise SystemExit(
-                f"{self.method_name}: error: {base_dir} already holds a run; choose another --timestamp or "
-                f"--experiment-name, or continue that run with --load-dir {self.get_checkpoint_dir()}"
-            )
-        super().save_config()
+        return holds_a_run and not (source is not None and source.resolve() == base_dir.resolve())
+
+
+@contextlib.contextmanager
+def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
+    """End the process with one line for bad input (an option, a dataset file, an image of a task released mid-run)
+    or a file it cannot write, nerfstudio's own included; anything else keeps its traceback, which is worth seeing."""
+    try:
+        yield
+    except Exception as error:
+        cause = os_error_of(error)
+        if isinstance(error, ContinualNerfError):
+            line = str(error)
+        elif cause is not None and cause.filename is not None:
+            line = f"{cause.filename}: {describe(cause)}"
+        else:
+            raise
+        raise SystemExit(f"{method_name}: error: {line}") from None
 
 
 class ContinualTrainer(Trainer):
@@ -89,16 +125,28 @@ class ContinualTrainer(Trainer):
         super().__init__(config, local_rank, world_size)
         self.panel: Optional[ContinualPanel] = None
         """The viewer's continual-learning panel, when the viewer runs."""
+        self._resumed_from: Optional[Path] = None
+        """The checkpoint folder this run resumed from, if any."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
+        try:
+            self._set_up(test_mode)
+        finally:
+            INTERRUPTS.restore()  # train() installs them again: a trainer only set up leaves no handler behind
+        location = TrainingCallbackLocation
+        self.callbacks += [
+            TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
+            TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
+        ]
+
+    def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
         self.config.max_num_iterations = self._iterations_to_run()
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        try:
+        with one_line_exit(self.config.method_name):
             super().setup(test_mode)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.config.method_name}: error: {error}") from None
         warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
         if isinstance(self.viewer_state, Viewer):
             pipeline = self.pipeline
@@ -119,16 +167,55 @@ class ContinualTrainer(Trainer):
         return cap
 
     def train(self) -> None:
-        accuracy = self.pipeline.accuracy
-        accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
+        INTERRUPTS.install()
+        # a signal while the viewer has paused training: the next iteration must come, to answer it
+        INTERRUPTS.deferring, INTERRUPTS.on_signal = True, lambda: leave_pause(self)
         try:
+            with one_line_exit(self.config.method_name):
+                self._train_saying_so_if_it_fails()
+        finally:
+            INTERRUPTS.restore()
+            release_run_folder(self.base_dir)
+
+    def _answer_interrupt(self, step: int) -> None:
+        """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
+        resume it and exit with 128 + the signal."""
+        number = INTERRUPTS.received
+        if number is None:
+            return
+        if step > first_step(self):
+            self.save_checkpoint(step - 1)
+            how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
+        elif self._resumed_from is not None:
+            how = f"no step trained since resuming; resume with: {resume_command(self._resumed_from, sys.argv)}"
+        else:
+            how = "no step trained yet, nothing to resume"
+        self.pipeline.accuracy.status = "interrupted"
+        self.pipeline.accuracy.write(self.base_dir)
+        print(
+            f"{self.config.method_name}: interrupted by {signal.Signals(number).name}: {how}",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(EXIT_CODES[number])
+
+    def _after_last_step(self, step: int) -> None:
+        """Training is over and saved: from now on a signal (the viewer may stay open) ends the process at once."""
+        INTERRUPTS.deferring = False
+        if INTERRUPTS.received is not None:
+            print(f"{self.config.method_name}: interrupted after its last step; the run is complete", file=sys.stderr)
+            raise SystemExit(EXIT_CODES[INTERRUPTS.received])
+
+    def _train_saying_so_if_it_fails(self) -> None:
+        accuracy = self.pipeline.accuracy
+        try:
+            accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
             super().train()
-        except Exception as error:
+        except Exception:
             if not accuracy.finished:
                 accuracy.status = "failed"
-                accuracy.write(self.base_dir)
-            if isinstance(error, ContinualNerfError):  # for instance an image of a task released mid-run
-                raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+                with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
+                    accuracy.write(self.base_dir)
             raise
 
     def _load_checkpoint(self) -> None:
@@ -140,16 +227,32 @@ class ContinualTrainer(Trainer):
         else:
             return super()._load_checkpoint()
         state = read_checkpoint(path)
+        self._resumed_from = path.parent
+        check_method(state, path, self.config.method_name)
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
+        self._check_budget_reaches(state["step"], path)
         restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
-            f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
+            f"Resuming from {path} at step {first_step(self)}: task {pipeline.task.current + 1}/"
             f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
+        )
+
+    def _check_budget_reaches(self, step: int, path: Path) -> None:
+        """Refuse a checkpoint at or past the last step this run has: nerfstudio's loop would not run at all."""
+        total = self.config.max_num_iterations
+        assert total is not None, "setup() sets it before loading"
+        if step + 1 < total:
+            return
+        datamanager = self.config.pipeline.datamanager
+        raise CheckpointError(
+            f"{path}: is at step {step}, beyond the {total} iterations this run has (--pipeline.datamanager."
+            f"iterations-per-task {datamanager.iterations_per_task} for {datamanager.num_tasks} tasks, or "
+            "--max-num-iterations); resume with the options it was trained with"
         )
 
     def _load_states(self, state: Dict[str, Any], path: Path) -> None:
@@ -180,6 +283,7 @@ class ContinualTrainer(Trainer):
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
             "step": step,
+            "method": self.config.method_name,
             "pipeline": self.pipeline.state_dict(),
             "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},

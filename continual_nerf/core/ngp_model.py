@@ -56,6 +56,10 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
             )
+        if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
+            raise ContinualConfigError(
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {self.eval_num_rays_per_chunk}"
+            )
 
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
         """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""

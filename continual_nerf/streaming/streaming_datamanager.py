@@ -182,7 +182,7 @@ class StreamingDataManager(ContinualDataManager):
             with released(train_lock):  # the viewer renders under the train lock
                 self.capture.wait_until(lambda: self._next_task_ready() or self.capture_finished)
             self._last_poll = time.monotonic()
-            return True
+            return self._next_task_ready() or self.capture_finished  # not when Ctrl-C ended the wait
         if not self._idle_reported:
             CONSOLE.log(f"Task {self.released_task + 1}: budget spent, refining until the next task's frames arrive")
             self._idle_reported = True
