@@ -157,3 +157,53 @@ def show_resume_button(viewer: Viewer) -> None:
     """
     if viewer.pause_train.visible:
         viewer.toggle_pause_button()
+
+
+def remove_frustum(viewer: Viewer, frame: int) -> None:
+    """Take a frustum drawn by `register_frustum` out of the scene and out of the viewer's camera handles.
+
+    Depends on: `Viewer.camera_handles` and `Viewer.original_c2w`, as `register_frustum`.
+    """
+    viewer.camera_handles.pop(frame).remove()
+    viewer.original_c2w.pop(frame)
+
+
+def set_render_defaults(viewer: Viewer, max_res: int, train_util: float) -> None:
+    """Start the viewer's "Max res" and "Train Util" sliders at other values than nerfstudio's 512 and 0.85.
+
+    Depends on: `ControlPanel._max_res` and `._train_util` (private ViewerSliders), which the render thread
+    (`RenderStateMachine._calculate_image_res`) and `Viewer.update_scene` read through `max_res` / `train_util`.
+    """
+    viewer.control_panel._max_res.value = max_res
+    viewer.control_panel._train_util.value = train_util
+
+
+def show_step(viewer: Viewer, step: int) -> None:
+    """Write `step` into nerfstudio's "Step:" status line, which nerfstudio itself updates only when it renders.
+
+    Depends on: `Viewer.update_step`, which rewrites the first line of `Viewer.stats_markdown`.
+    """
+    viewer.update_step(step)
+
+
+def disable_training_buttons(viewer: Viewer) -> None:
+    """Grey out nerfstudio's "Pause Training" / "Resume Training" once training has ended (they would do nothing).
+
+    Depends on: `Viewer.pause_train` and `Viewer.resume_train`, viser button handles.
+    """
+    viewer.pause_train.disabled = True
+    viewer.resume_train.disabled = True
+
+
+def rerender(viewer: Viewer) -> None:
+    """Render every connected browser's view again (after the model's weights changed under the viewer).
+
+    Depends on: `Viewer._trigger_rerender` (private), which nerfstudio's own controls call.
+    """
+    viewer._trigger_rerender()
+
+
+TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings")
+"""Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
+viewer's scene (`_init_viewer_state`, called at the start of `train`) and the viewer's start-up note
+(`_check_viewer_warnings`, called by `setup` right after the viewer starts)."""
