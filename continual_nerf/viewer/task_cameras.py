@@ -109,30 +109,34 @@ class TaskCameras:
 
     def __init__(self, viewer: Viewer, dataset: ContinualDataset, scale: Optional[float]) -> None:
         self.viewer = viewer
-        limit = viewer.config.max_num_display_images
-        self.stride = 1 if limit < 0 else max(1, math.ceil(len(dataset) / max(limit, 1)))
-        """Every stride-th frame is drawn, so that at most max_num_display_images are (as nerfstudio does)."""
         self.scale = frustum_scale(dataset) if scale is None else scale
         """Size of the frustums of closed tasks, fixed at the start so that a growing trajectory keeps its look."""
         self.styles: Dict[int, Tuple[bool, bool]] = {}
         """Tasks drawn so far, and how: (highlighted, with images)."""
+        self.frames: Dict[int, List[int]] = {}
+        """The frames drawn of each task."""
 
     def show(self, dataset: ContinualDataset, current_task: int) -> None:
         """Draw tasks 1..current_task + 1 and no later one; redraw those whose style changed (highlight, images)."""
         for task in [task for task in self.styles if task > current_task]:
-            for frame in self.drawn_frames(dataset, task):
+            for frame in self.frames.pop(task):
                 remove_frustum(self.viewer, frame)
             del self.styles[task]
         for task in range(current_task + 1):
             # images only while the dataset holds the task's pixels; it loads them at the task's first batch
             style = (task in (current_task, dataset.open_task), task == dataset.open_task)
             if self.styles.get(task) != style:
-                for frame in self.drawn_frames(dataset, task):
+                if task not in self.frames:
+                    self.frames[task] = dataset.frames_of_task(task).tolist()[:: self._stride(len(dataset))]
+                for frame in self.frames[task]:
                     self._draw(dataset, frame, task, *style)
                 self.styles[task] = style
 
-    def drawn_frames(self, dataset: ContinualDataset, task: int) -> List[int]:
-        return [frame for frame in dataset.frames_of_task(task).tolist() if frame % self.stride == 0]
+    def _stride(self, num_frames: int) -> int:
+        """Draw every stride-th frame of a new task, so that about max_num_display_images are drawn in all (as
+        nerfstudio does); a trajectory that grows while it trains thins out its later tasks."""
+        limit = self.viewer.config.max_num_display_images
+        return 1 if limit < 0 else max(1, math.ceil(num_frames / max(limit, 1)))
 
     def _draw(self, dataset: ContinualDataset, frame: int, task: int, highlighted: bool, with_image: bool) -> None:
         viewer = self.viewer
