@@ -3,14 +3,17 @@ when a nerfstudio release changes what the plugin depends on."""
 
 from __future__ import annotations
 
+import inspect
 import random
 import socket
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.trainer import Trainer
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import nn
 
@@ -107,12 +110,30 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         assert viewer.camera_handles == {} and viewer.config.max_num_display_images > 0, "no frustum, config restored"
         assert isinstance(compat.panel_order(viewer), float)
         assert compat.training_cameras_shown(viewer)
-        compat.register_frustum(viewer, 3, "handle", np.eye(4)[:3])
-        assert viewer.camera_handles[3] == "handle" and viewer.original_c2w[3].shape == (3, 4)
+        handle = mock.Mock()
+        compat.register_frustum(viewer, 3, handle, np.eye(4)[:3])
+        assert viewer.camera_handles[3] is handle and viewer.original_c2w[3].shape == (3, 4)
         compat.set_current_camera(viewer, 3)
         assert viewer.current_camera_idx == 3
-        viewer.camera_handles.clear()
+        compat.remove_frustum(viewer, 3)
+        handle.remove.assert_called_once()
+        assert viewer.camera_handles == {} and viewer.original_c2w == {}
         compat.show_resume_button(viewer)
         assert not viewer.pause_train.visible and viewer.resume_train.visible
+        compat.set_render_defaults(viewer, 128, 0.95)
+        assert viewer.control_panel.max_res == 128 and viewer.control_panel.train_util == 0.95
+        compat.show_step(viewer, 7)
+        assert viewer.stats_markdown.content.splitlines()[0].startswith("Step: 7")
+        compat.disable_training_buttons(viewer)
+        assert viewer.pause_train.disabled and viewer.resume_train.disabled
+        compat.rerender(viewer)  # no browser connected: nothing to render, and no error
     finally:
         trainer.shutdown()
+
+
+def test_trainer_methods_the_continual_trainer_overrides():
+    for name in compat.TRAINER_OVERRIDES:
+        assert callable(getattr(Trainer, name, None)), f"nerfstudio's Trainer has no {name} any more"
+    setup, train = inspect.getsource(Trainer.setup), inspect.getsource(Trainer.train)
+    assert setup.index("ViewerState(") < setup.index("self._check_viewer_warnings()"), "called after the viewer starts"
+    assert "self._load_checkpoint()" in setup and "self._init_viewer_state()" in train
