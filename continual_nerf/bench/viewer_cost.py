@@ -1,0 +1,134 @@
+"""What an open viewer page costs training: continual-ngp's iterations per second with the page closed and open at
+several render settings ("Max res", "Train Util"), measured in one run.
+
+    python -m continual_nerf.bench.viewer_cost [--settings 512:0.85 256:0.95] [--rounds 3] [--phase-seconds 40]
+
+continual-ngp trains on the demo scene with the viewer on 127.0.0.1, through nerfstudio's own Trainer loop (which
+schedules the viewer's renders); a headless Chromium on the same machine opens the page as a user would, or leaves
+it (about:blank). Phases take turns, round after round, so that a change in the machine's load hits them alike;
+each open phase is compared with the closed phase of its round. Needs Debian's chromium and websocket-client.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from bisect import bisect_left
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple
+
+import tyro
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.viewer.viewer import Viewer
+from rich.table import Table
+
+from continual_nerf.bench.browser import DevTools, wait_for
+from continual_nerf.bench.demo_runs import on_demo
+from continual_nerf.bench.live_viewer import train_while, viewer_trainer, viewer_url
+from continual_nerf.core.continual_trainer import ContinualTrainer
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.nerfstudio_compat import set_render_defaults
+
+CLOSED = "page closed"
+"""The phase without a page: the viewer runs, nobody looks (as fast as no viewer: nerfstudio renders for pages)."""
+
+
+@dataclass
+class StepClock:
+    """When each training iteration ended."""
+
+    times: List[float] = field(default_factory=list)
+
+    def tick(self, step: int) -> None:
+        self.times.append(time.perf_counter())
+
+    def rate(self, start: float, end: float) -> float:
+        """Iterations per second that ended in [start, end)."""
+        return (bisect_left(self.times, end) - bisect_left(self.times, start)) / (end - start)
+
+
+@dataclass
+class ViewerCostBenchmark:
+    """Training iterations per second with the viewer's page closed and open at each render setting."""
+
+    settings: Tuple[str, ...] = ("512:0.85", "256:0.85", "256:0.95", "128:0.95")
+    """Render settings "max_res:train_util" to measure (nerfstudio's defaults are 512:0.85)."""
+    rounds: int = 3
+    """Rounds of phases (page closed, then each setting)."""
+    settle_seconds: float = 10.0
+    """Seconds after a phase starts (page loading, first renders) that are not counted."""
+    phase_seconds: float = 40.0
+    """Seconds counted per phase."""
+    window_size: str = "1000,700"
+    """Browser window (width,height): the render's aspect and size follow it."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device to train on."""
+    data: Path = Path("data/continual-demo")
+    """Where the demo scene is generated (and reused from)."""
+
+    def trainer(self, output_dir: Path) -> ContinualTrainer:
+        """continual-ngp on the demo scene with the viewer; its tasks never end (the benchmark stops it)."""
+        demo = ContinualDemoDataParserConfig(data=self.data)
+        config = on_demo(CONTINUAL_NGP, demo, self.device, output_dir, num_tasks=10, iterations_per_task=10**8)
+        return viewer_trainer(config)
+
+    def phases(self) -> List[Optional[Tuple[int, float]]]:
+        """One round: the closed page, then each setting."""
+        parsed = [(int(res), float(util)) for res, util in (setting.split(":") for setting in self.settings)]
+        return [None, *parsed]
+
+    def drive(self, trainer: ContinualTrainer, clock: StepClock, rates: Dict[str, List[float]], profile: Path) -> None:
+        """Open and close the page phase by phase, recording iterations per second."""
+        viewer = trainer.viewer_state
+        assert isinstance(viewer, Viewer)
+        browser = DevTools(profile, window_size=self.window_size)
+        try:
+            wait_for("training to start", lambda: len(clock.times) > 3, timeout=600)
+            for round_number in range(self.rounds):
+                for phase in self.phases():
+                    name = CLOSED if phase is None else f"{phase[0]} px, util {phase[1]:g}"
+                    if phase is None:
+                        browser.navigate("about:blank")
+                    else:
+                        set_render_defaults(viewer, *phase)
+                        browser.navigate(viewer_url(trainer))
+                    start = time.perf_counter() + self.settle_seconds
+                    time.sleep(self.settle_seconds + self.phase_seconds)
+                    rates.setdefault(name, []).append(clock.rate(start, start + self.phase_seconds))
+                    CONSOLE.log(f"round {round_number + 1}: {name}: {rates[name][-1]:.2f} it/s")
+        finally:
+            browser.close()
+
+    def measure(self, output_dir: Path) -> Dict[str, List[float]]:
+        trainer = self.trainer(output_dir)
+        clock = StepClock()
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], clock.tick))
+        rates: Dict[str, List[float]] = {}
+        train_while(trainer, lambda: self.drive(trainer, clock, rates, output_dir / "chromium-profile"))
+        return rates
+
+    def report(self, rates: Dict[str, List[float]]) -> None:
+        table = Table(title=f"Training with the viewer's page open ({self.window_size} window), {self.device}")
+        for column in ("page", "iterations/s (median)", "vs page closed (median of rounds)"):
+            table.add_column(column, justify="right")
+        closed = rates[CLOSED]
+        for name, values in rates.items():
+            ratio = statistics.median(value / base for value, base in zip(values, closed))
+            table.add_row(name, f"{statistics.median(values):.2f}", f"{100 * ratio:.0f}%")
+        CONSOLE.print(table)
+
+    def main(self) -> None:
+        with tempfile.TemporaryDirectory() as scratch:
+            self.report(self.measure(Path(scratch)))
+
+
+def entrypoint() -> None:
+    tyro.cli(ViewerCostBenchmark).main()
+
+
+if __name__ == "__main__":
+    entrypoint()
