@@ -13,9 +13,11 @@ from contextlib import contextmanager
 from typing import Any, Callable, Dict, Iterator, List
 from unittest import mock
 
+import msgspec
 import numpy as np
 import torch
 import torchmetrics.image.lpip
+import viser.transforms as vtf
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.models.nerfacto import NerfactoModel
@@ -207,3 +209,29 @@ TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_wa
 """Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
 viewer's scene (`_init_viewer_state`, called at the start of `train`) and the viewer's start-up note
 (`_check_viewer_warnings`, called by `setup` right after the viewer starts)."""
+
+
+def viewer_camera_message(
+    position: np.ndarray, look_at: np.ndarray, up: np.ndarray, fov: float, aspect: float
+) -> bytes:
+    """The bytes a browser sends the viewer when its camera is at `position` looking at `look_at` (viser units), so
+    that a page without a browser can ask for renders.
+
+    Depends on: viser 0.2.7's wire format: `viser._messages.ViewerCameraMessage` (OpenCV camera, +z forward) as its
+    `as_serializable_dict()`, msgpack-encoded (client API version 0).
+    """
+    from viser import _messages
+
+    forward = (look_at - position) / np.linalg.norm(look_at - position)
+    down = -(up - np.dot(up, forward) * forward)
+    down = down / np.linalg.norm(down)
+    rotation = vtf.SO3.from_matrix(np.stack([np.cross(down, forward), down, forward], axis=1))
+    message = _messages.ViewerCameraMessage(
+        wxyz=tuple(float(v) for v in rotation.wxyz),  # type: ignore[arg-type]
+        position=tuple(float(v) for v in position),  # type: ignore[arg-type]
+        fov=fov,
+        aspect=aspect,
+        look_at=tuple(float(v) for v in look_at),  # type: ignore[arg-type]
+        up_direction=tuple(float(v) for v in up),  # type: ignore[arg-type]
+    )
+    return msgspec.msgpack.encode(message.as_serializable_dict())

@@ -6,11 +6,13 @@ from __future__ import annotations
 import inspect
 import random
 import socket
+import time
 from unittest import mock
 
 import numpy as np
 import pytest
 import torch
+import viser.transforms as vtf
 from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.trainer import Trainer
@@ -137,3 +139,30 @@ def test_trainer_methods_the_continual_trainer_overrides():
     setup, train = inspect.getsource(Trainer.setup), inspect.getsource(Trainer.train)
     assert setup.index("ViewerState(") < setup.index("self._check_viewer_warnings()"), "called after the viewer starts"
     assert "self._load_checkpoint()" in setup and "self._init_viewer_state()" in train
+
+
+def test_a_camera_message_makes_a_viser_client_with_that_camera():
+    import viser
+    import websocket
+
+    port = _free_port()
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    cameras = []
+    server.on_client_connect(lambda client: cameras.append(client.camera))
+    position, look_at, up = np.array([1.0, -8.0, 6.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    page = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=10, suppress_origin=True)
+    try:
+        page.send_binary(compat.viewer_camera_message(position, look_at, up, fov=1.0, aspect=1.5))
+        deadline = time.monotonic() + 30
+        while not cameras and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert cameras, "viser did not take the message as a client's camera"
+        camera = cameras[0]
+        assert np.allclose(camera.position, position) and np.allclose(camera.look_at, look_at)
+        assert camera.fov == 1.0 and camera.aspect == 1.5
+        # viser's camera looks down its +z axis (OpenCV): the orientation sent must look at look_at
+        forward = vtf.SO3(camera.wxyz).as_matrix()[:, 2]
+        assert np.allclose(forward, (look_at - position) / np.linalg.norm(look_at - position), atol=1e-6)
+    finally:
+        page.close()
+        server.stop()

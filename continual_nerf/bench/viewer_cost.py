@@ -1,18 +1,21 @@
-"""What an open viewer page costs training: continual-ngp's iterations per second with the page closed and open at
-several render settings ("Max res", "Train Util"), measured in one run.
+"""What an open viewer page costs training: continual-ngp's iterations per second with no page open, and with a
+page at several render settings ("Max res", "Train Util"), measured in one run.
 
     python -m continual_nerf.bench.viewer_cost [--settings 512:0.85 256:0.95] [--rounds 3] [--phase-seconds 40]
 
 continual-ngp trains on the demo scene with the viewer on 127.0.0.1, through nerfstudio's own Trainer loop (which
-schedules the viewer's renders); a headless Chromium on the same machine opens the page as a user would, or leaves
-it (about:blank). Phases take turns, round after round, so that a change in the machine's load hits them alike;
-each open phase is compared with the closed phase of its round. Needs Debian's chromium and websocket-client.
+schedules the viewer's renders). Two kinds of page: a remote one (a websocket client that asks for renders and
+draws nothing: what a browser on another machine, through ssh -L, costs the training machine) at each setting, and
+a headless Chromium on the same machine (software WebGL: what a browser beside training costs) at
+`--browser-settings`. Phases take turns, round after round, so that a change in the machine's load hits them alike;
+each is compared with the no-page phase of its round. Needs Debian's chromium and websocket-client.
 """
 
 from __future__ import annotations
 
 import statistics
 import tempfile
+import threading
 import time
 from bisect import bisect_left
 from dataclasses import dataclass, field
@@ -31,10 +34,38 @@ from continual_nerf.bench.live_viewer import train_while, viewer_trainer, viewer
 from continual_nerf.core.continual_trainer import ContinualTrainer
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import CONTINUAL_NGP
-from continual_nerf.nerfstudio_compat import set_render_defaults
+from continual_nerf.nerfstudio_compat import set_render_defaults, viewer_camera_message
+from continual_nerf.viewer.task_cameras import framing_view
 
-CLOSED = "page closed"
+CLOSED = "no page"
 """The phase without a page: the viewer runs, nobody looks (as fast as no viewer: nerfstudio renders for pages)."""
+REMOTE_ASPECT = 1.4
+"""Width over height of the remote page's view (about a 1000x700 browser window less the panel)."""
+Setting = Tuple[int, float]
+
+
+class RemotePage:
+    """A page on another machine, as the training machine sees it: it sends one camera pose and takes every render
+    the viewer sends, without decoding or drawing them."""
+
+    def __init__(self, port: int, camera: bytes) -> None:
+        import websocket  # the test extra's
+
+        self.socket = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=10, suppress_origin=True)
+        self.socket.send_binary(camera)
+        self.thread = threading.Thread(target=self._drain, daemon=True)
+        self.thread.start()
+
+    def _drain(self) -> None:
+        try:
+            while self.socket.recv():
+                pass
+        except Exception:  # noqa: BLE001 - closed by close(), or by the server shutting down
+            return
+
+    def close(self) -> None:
+        self.socket.close()
+        self.thread.join(timeout=10)
 
 
 @dataclass
@@ -56,7 +87,9 @@ class ViewerCostBenchmark:
     """Training iterations per second with the viewer's page closed and open at each render setting."""
 
     settings: Tuple[str, ...] = ("512:0.85", "256:0.85", "256:0.95", "128:0.95")
-    """Render settings "max_res:train_util" to measure (nerfstudio's defaults are 512:0.85)."""
+    """Render settings "max_res:train_util" to measure with the remote page (nerfstudio's defaults are 512:0.85)."""
+    browser_settings: Tuple[str, ...] = ("512:0.85", "256:0.95")
+    """Render settings to measure with Chromium on this machine."""
     rounds: int = 3
     """Rounds of phases (page closed, then each setting)."""
     settle_seconds: float = 10.0
@@ -64,7 +97,7 @@ class ViewerCostBenchmark:
     phase_seconds: float = 40.0
     """Seconds counted per phase."""
     window_size: str = "1000,700"
-    """Browser window (width,height): the render's aspect and size follow it."""
+    """Chromium's window (width,height): the render's aspect and size follow it."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Device to train on."""
     data: Path = Path("data/continual-demo")
@@ -76,30 +109,44 @@ class ViewerCostBenchmark:
         config = on_demo(CONTINUAL_NGP, demo, self.device, output_dir, num_tasks=10, iterations_per_task=10**8)
         return viewer_trainer(config)
 
-    def phases(self) -> List[Optional[Tuple[int, float]]]:
-        """One round: the closed page, then each setting."""
-        parsed = [(int(res), float(util)) for res, util in (setting.split(":") for setting in self.settings)]
-        return [None, *parsed]
+    def phases(self) -> List[Tuple[str, Optional[Setting]]]:
+        """One round: no page, the remote page at each setting, Chromium at each browser setting."""
+
+        def parse(setting: str) -> Setting:
+            res, util = setting.split(":")
+            return int(res), float(util)
+
+        remote = [("remote", parse(setting)) for setting in self.settings]
+        return [("none", None), *remote, *[("chromium", parse(setting)) for setting in self.browser_settings]]
 
     def drive(self, trainer: ContinualTrainer, clock: StepClock, rates: Dict[str, List[float]], profile: Path) -> None:
-        """Open and close the page phase by phase, recording iterations per second."""
+        """Open and close the pages phase by phase, recording iterations per second."""
         viewer = trainer.viewer_state
         assert isinstance(viewer, Viewer)
+        dataset = trainer.pipeline.datamanager.train_dataset
+        view = framing_view(dataset, range(len(dataset)), fov=1.0)
+        camera = viewer_camera_message(view.position, view.look_at, view.up, 1.0, REMOTE_ASPECT)
+        port = trainer.config.viewer.websocket_port or 0
         browser = DevTools(profile, window_size=self.window_size)
         try:
             wait_for("training to start", lambda: len(clock.times) > 3, timeout=600)
             for round_number in range(self.rounds):
-                for phase in self.phases():
-                    name = CLOSED if phase is None else f"{phase[0]} px, util {phase[1]:g}"
-                    if phase is None:
-                        browser.navigate("about:blank")
-                    else:
-                        set_render_defaults(viewer, *phase)
+                for page, setting in self.phases():
+                    name = CLOSED if setting is None else f"{page}, {setting[0]} px, util {setting[1]:g}"
+                    remote = None
+                    if setting is not None:
+                        set_render_defaults(viewer, *setting)
+                    if page == "remote":
+                        remote = RemotePage(port, camera)
+                    elif page == "chromium":
                         browser.navigate(viewer_url(trainer))
                     start = time.perf_counter() + self.settle_seconds
                     time.sleep(self.settle_seconds + self.phase_seconds)
                     rates.setdefault(name, []).append(clock.rate(start, start + self.phase_seconds))
                     CONSOLE.log(f"round {round_number + 1}: {name}: {rates[name][-1]:.2f} it/s")
+                    if remote is not None:
+                        remote.close()
+                    browser.navigate("about:blank")
         finally:
             browser.close()
 
@@ -112,8 +159,8 @@ class ViewerCostBenchmark:
         return rates
 
     def report(self, rates: Dict[str, List[float]]) -> None:
-        table = Table(title=f"Training with the viewer's page open ({self.window_size} window), {self.device}")
-        for column in ("page", "iterations/s (median)", "vs page closed (median of rounds)"):
+        table = Table(title=f"continual-ngp training with a viewer page open, {self.device}")
+        for column in ("page", "iterations/s (median)", "vs no page (median of rounds)"):
             table.add_column(column, justify="right")
         closed = rates[CLOSED]
         for name, values in rates.items():
