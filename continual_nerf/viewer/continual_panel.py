@@ -116,6 +116,7 @@ class ContinualPanel:
         self.follow = ViewerCheckbox(
             "Follow the newest task",
             options.follow_newest_task,
+            cb_hook=lambda _: self._follow(),
             hint="Move the view to each task as it is released",
         )
         self.progress: Optional[viser.GuiMarkdownHandle] = None

@@ -157,7 +157,8 @@ class ContinualRunViewer:
 
 
 def entrypoint() -> None:
-    tyro.cli(ContinualRunViewer).main()
+    # booleans as `--option True/False`, as ns-train and ns-viewer take them
+    tyro.cli(tyro.conf.FlagConversionOff[ContinualRunViewer]).main()
 
 
 if __name__ == "__main__":
