@@ -4,11 +4,33 @@ it) while another thread drives a browser page; shared by the viewer's cost benc
 from __future__ import annotations
 
 import threading
-from typing import Callable, List
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, List, Literal
 
 from continual_nerf.bench.browser import free_port, viewer_answers, wait_for
+from continual_nerf.bench.demo_runs import on_demo
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import set_up_like_ns_train
+
+
+@dataclass
+class LiveViewerRun:
+    """A continual-ngp run on the demo scene with the viewer, and the Chromium window that looks at it."""
+
+    window_size: str = "1000,700"
+    """Chromium's window (width,height): the render's aspect and size follow it."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Device to train on."""
+    data: Path = Path("data/continual-demo")
+    """Where the demo scene is generated (and reused from)."""
+
+    def set_up(self, output_dir: Path, **datamanager: Any) -> ContinualTrainer:
+        """continual-ngp on the demo scene, with the given datamanager options and the viewer, set up."""
+        demo = ContinualDemoDataParserConfig(data=self.data)
+        return viewer_trainer(on_demo(CONTINUAL_NGP, demo, self.device, output_dir, **datamanager))
 
 
 def viewer_trainer(config: ContinualTrainerConfig) -> ContinualTrainer:

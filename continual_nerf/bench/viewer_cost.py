@@ -20,7 +20,7 @@ import time
 from bisect import bisect_left
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -29,11 +29,8 @@ from nerfstudio.viewer.viewer import Viewer
 from rich.table import Table
 
 from continual_nerf.bench.browser import DevTools, wait_for
-from continual_nerf.bench.demo_runs import on_demo
-from continual_nerf.bench.live_viewer import train_while, viewer_trainer, viewer_url
+from continual_nerf.bench.live_viewer import LiveViewerRun, train_while, viewer_url
 from continual_nerf.core.continual_trainer import ContinualTrainer
-from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.nerfstudio_compat import set_render_defaults, viewer_camera_message
 from continual_nerf.viewer.task_cameras import framing_view
 
@@ -83,7 +80,7 @@ class StepClock:
 
 
 @dataclass
-class ViewerCostBenchmark:
+class ViewerCostBenchmark(LiveViewerRun):
     """Training iterations per second with the viewer's page closed and open at each render setting."""
 
     settings: Tuple[str, ...] = ("512:0.85", "256:0.85", "256:0.95", "128:0.95")
@@ -96,18 +93,6 @@ class ViewerCostBenchmark:
     """Seconds after a phase starts (page loading, first renders) that are not counted."""
     phase_seconds: float = 40.0
     """Seconds counted per phase."""
-    window_size: str = "1000,700"
-    """Chromium's window (width,height): the render's aspect and size follow it."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device to train on."""
-    data: Path = Path("data/continual-demo")
-    """Where the demo scene is generated (and reused from)."""
-
-    def trainer(self, output_dir: Path) -> ContinualTrainer:
-        """continual-ngp on the demo scene with the viewer; its tasks never end (the benchmark stops it)."""
-        demo = ContinualDemoDataParserConfig(data=self.data)
-        config = on_demo(CONTINUAL_NGP, demo, self.device, output_dir, num_tasks=10, iterations_per_task=10**8)
-        return viewer_trainer(config)
 
     def phases(self) -> List[Tuple[str, Optional[Setting]]]:
         """One round: no page, the remote page at each setting, Chromium at each browser setting."""
@@ -151,7 +136,7 @@ class ViewerCostBenchmark:
             browser.close()
 
     def measure(self, output_dir: Path) -> Dict[str, List[float]]:
-        trainer = self.trainer(output_dir)
+        trainer = self.set_up(output_dir, num_tasks=10, iterations_per_task=10**8)  # the benchmark ends it
         clock = StepClock()
         trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], clock.tick))
         rates: Dict[str, List[float]] = {}

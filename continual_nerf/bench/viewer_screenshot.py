@@ -15,22 +15,18 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from continual_nerf.bench.browser import DevTools, wait_for
-from continual_nerf.bench.demo_runs import on_demo
-from continual_nerf.bench.live_viewer import train_while, viewer_trainer, viewer_url
+from continual_nerf.bench.live_viewer import LiveViewerRun, train_while, viewer_url
 from continual_nerf.core.continual_trainer import ContinualTrainer
-from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.method_configs import CONTINUAL_NGP
 
 
 @dataclass
-class ViewerScreenshot:
+class ViewerScreenshot(LiveViewerRun):
     """A screenshot of the live viewer during a continual-ngp run on the demo scene."""
 
     output: Path = Path("docs/viewer.png")
@@ -42,11 +38,7 @@ class ViewerScreenshot:
     colours: int = 64
     """Palette size of the PNG: keeps the file small."""
     window_size: str = "1200,800"
-    """Browser window (width,height)."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device to train on."""
-    data: Path = Path("data/continual-demo")
-    """Where the demo scene is generated (and reused from)."""
+    """Chromium's window (width,height)."""
 
     def drive(self, trainer: ContinualTrainer, profile: Path) -> None:
         browser = DevTools(profile, window_size=self.window_size)
@@ -66,10 +58,8 @@ class ViewerScreenshot:
         CONSOLE.print(f"{self.output}: {self.output.stat().st_size // 1024} KiB")
 
     def main(self) -> None:
-        demo = ContinualDemoDataParserConfig(data=self.data)
         with tempfile.TemporaryDirectory() as scratch:
-            config = on_demo(CONTINUAL_NGP, demo, self.device, Path(scratch), num_tasks=5, iterations_per_task=60)
-            trainer = viewer_trainer(config)
+            trainer = self.set_up(Path(scratch), num_tasks=5, iterations_per_task=60)  # the README's quick start
             train_while(trainer, lambda: self.drive(trainer, Path(scratch) / "chromium-profile"))
 
 

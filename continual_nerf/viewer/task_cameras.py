@@ -29,15 +29,6 @@ from continual_nerf.nerfstudio_compat import (
 )
 from continual_nerf.plots import task_colour
 
-OPEN_TASK_SCALE = 1.6
-"""Frustums of the open task are drawn this much larger than those of earlier tasks."""
-THUMBNAIL_HEIGHT = 100
-"""Height in pixels of the images shown in the open task's frustums (nerfstudio's viewer uses 100 too)."""
-FRUSTUM_FRACTION = 0.04
-"""Automatic frustum size: this fraction of the largest side of the box around the trajectory's cameras."""
-VIEW_MARGIN = 1.3
-"""The framing view leaves this much room around the cameras it frames."""
-
 
 @dataclass(frozen=True)
 class View:
@@ -46,6 +37,16 @@ class View:
     position: np.ndarray
     look_at: np.ndarray
     up: np.ndarray
+
+
+OPEN_TASK_SCALE = 1.6
+"""Frustums of the open task are drawn this much larger than those of earlier tasks."""
+THUMBNAIL_HEIGHT = 100
+"""Height in pixels of the images shown in the open task's frustums (nerfstudio's viewer uses 100 too)."""
+FRUSTUM_FRACTION = 0.04
+"""Automatic frustum size: this fraction of the largest side of the box around the trajectory's cameras."""
+VIEW_MARGIN = 1.3
+"""The framing view leaves this much room around the cameras it frames."""
 
 
 def camera_positions(dataset: ContinualDataset, frames: Sequence[int]) -> np.ndarray:
