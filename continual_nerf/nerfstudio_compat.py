@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from contextlib import contextmanager
-from typing import Any, Callable, Dict, Iterator, List
+from typing import Any, Callable, Dict, Iterator, List, Optional
 from unittest import mock
 
 import msgspec
@@ -21,6 +21,7 @@ import viser.transforms as vtf
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 
@@ -235,3 +236,13 @@ def viewer_camera_message(
         up_direction=tuple(float(v) for v in up),  # type: ignore[arg-type]
     )
     return msgspec.msgpack.encode(message.as_serializable_dict())
+
+
+def viewer_render_rays_per_second() -> Optional[float]:
+    """The viewer's render speed, averaged over its latest renders, or None before the first one.
+
+    Depends on: `nerfstudio.utils.writer.GLOBAL_BUFFER["events"]`, where the viewer's render thread puts
+    `EventName.VIS_RAYS_PER_SEC` (and `Viewer.update_scene` reads it to space its renders).
+    """
+    event = writer.GLOBAL_BUFFER.get("events", {}).get(writer.EventName.VIS_RAYS_PER_SEC.value)
+    return None if event is None else float(event["avg"])

@@ -166,3 +166,14 @@ def test_a_camera_message_makes_a_viser_client_with_that_camera():
     finally:
         page.close()
         server.stop()
+
+
+def test_the_viewers_render_speed_is_read_where_the_render_thread_puts_it():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import writer
+
+    writer.setup_local_writer(LoggingConfig(), max_iter=10)  # the render thread writes once this was called
+    assert compat.viewer_render_rays_per_second() is None
+    writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=1000.0, step=0, avg_over_steps=True)
+    writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=3000.0, step=1, avg_over_steps=True)
+    assert compat.viewer_render_rays_per_second() == 2000.0

@@ -206,7 +206,7 @@ def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path
 
 def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, tmp_path):
     config = tiny_config(
-        tmp_path / "outputs", demo_parser(num_frames=24, width=32, height=24), num_tasks=2, iterations_per_task=40
+        tmp_path / "outputs", demo_parser(num_frames=24, width=32, height=24), num_tasks=2, iterations_per_task=20
     )
     train(config)
     run_dir = config.get_base_dir()

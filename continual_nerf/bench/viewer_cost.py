@@ -31,7 +31,7 @@ from rich.table import Table
 from continual_nerf.bench.browser import DevTools, wait_for
 from continual_nerf.bench.live_viewer import LiveViewerRun, train_while, viewer_url
 from continual_nerf.core.continual_trainer import ContinualTrainer
-from continual_nerf.nerfstudio_compat import set_render_defaults, viewer_camera_message
+from continual_nerf.nerfstudio_compat import set_render_defaults, viewer_camera_message, viewer_render_rays_per_second
 from continual_nerf.viewer.task_cameras import framing_view
 
 CLOSED = "no page"
@@ -83,16 +83,19 @@ class StepClock:
 class ViewerCostBenchmark(LiveViewerRun):
     """Training iterations per second with the viewer's page closed and open at each render setting."""
 
-    settings: Tuple[str, ...] = ("512:0.85", "256:0.85", "256:0.95", "128:0.95")
+    settings: Tuple[str, ...] = ("512:0.85", "256:0.95", "128:0.95")
     """Render settings "max_res:train_util" to measure with the remote page (nerfstudio's defaults are 512:0.85)."""
-    browser_settings: Tuple[str, ...] = ("512:0.85", "256:0.95")
+    browser_settings: Tuple[str, ...] = ("512:0.85", "128:0.95")
     """Render settings to measure with Chromium on this machine."""
-    rounds: int = 3
-    """Rounds of phases (page closed, then each setting)."""
-    settle_seconds: float = 10.0
-    """Seconds after a phase starts (page loading, first renders) that are not counted."""
-    phase_seconds: float = 40.0
-    """Seconds counted per phase."""
+    rounds: int = 2
+    """Rounds of phases (no page, then each page and setting)."""
+    settle_seconds: float = 30.0
+    """Seconds after a page opens that are not counted: loading, and the first full-resolution render, which holds
+    training while it runs (its length is the render's pixels over the render speed reported)."""
+    phase_seconds: float = 60.0
+    """Seconds counted per phase: training with the page open and still, as while watching it."""
+    render_speeds: tyro.conf.Suppress[Dict[str, List[float]]] = field(default_factory=dict)
+    """The viewer's render speed (rays/s) at the end of each phase with a page."""
 
     def phases(self) -> List[Tuple[str, Optional[Setting]]]:
         """One round: no page, the remote page at each setting, Chromium at each browser setting."""
@@ -128,7 +131,12 @@ class ViewerCostBenchmark(LiveViewerRun):
                     start = time.perf_counter() + self.settle_seconds
                     time.sleep(self.settle_seconds + self.phase_seconds)
                     rates.setdefault(name, []).append(clock.rate(start, start + self.phase_seconds))
-                    CONSOLE.log(f"round {round_number + 1}: {name}: {rates[name][-1]:.2f} it/s")
+                    render = viewer_render_rays_per_second()
+                    if setting is not None and render is not None:
+                        self.render_speeds.setdefault(name, []).append(render)
+                    CONSOLE.log(
+                        f"round {round_number + 1}: {name}: {rates[name][-1]:.2f} it/s, renders {render} rays/s"
+                    )
                     if remote is not None:
                         remote.close()
                     browser.navigate("about:blank")
@@ -145,12 +153,14 @@ class ViewerCostBenchmark(LiveViewerRun):
 
     def report(self, rates: Dict[str, List[float]]) -> None:
         table = Table(title=f"continual-ngp training with a viewer page open, {self.device}")
-        for column in ("page", "iterations/s (median)", "vs no page (median of rounds)"):
+        for column in ("page", "iterations/s (median)", "vs no page (median of rounds)", "render rays/s"):
             table.add_column(column, justify="right")
         closed = rates[CLOSED]
         for name, values in rates.items():
             ratio = statistics.median(value / base for value, base in zip(values, closed))
-            table.add_row(name, f"{statistics.median(values):.2f}", f"{100 * ratio:.0f}%")
+            render = self.render_speeds.get(name)
+            render_text = f"{statistics.median(render):,.0f}" if render else "-"
+            table.add_row(name, f"{statistics.median(values):.2f}", f"{100 * ratio:.0f}%", render_text)
         CONSOLE.print(table)
 
     def main(self) -> None:
