@@ -67,16 +67,26 @@ class RemotePage:
 
 @dataclass
 class StepClock:
-    """When each training iteration ended."""
+    """When each training iteration started and ended (inside the Trainer's train lock, which renders take too)."""
 
-    times: List[float] = field(default_factory=list)
+    starts: List[float] = field(default_factory=list)
+    ends: List[float] = field(default_factory=list)
 
-    def tick(self, step: int) -> None:
-        self.times.append(time.perf_counter())
+    def start(self, step: int) -> None:
+        self.starts.append(time.perf_counter())
+
+    def end(self, step: int) -> None:
+        self.ends.append(time.perf_counter())
 
     def rate(self, start: float, end: float) -> float:
         """Iterations per second that ended in [start, end)."""
-        return (bisect_left(self.times, end) - bisect_left(self.times, start)) / (end - start)
+        return (bisect_left(self.ends, end) - bisect_left(self.ends, start)) / (end - start)
+
+    def share(self, start: float, end: float) -> float:
+        """Share of [start, end) spent inside training iterations. Other processes' load slows iterations and
+        everything else alike, so this compares phases where iterations per second, on a shared machine, cannot."""
+        spans = zip(self.starts, self.ends)
+        return sum(max(0.0, min(b, end) - max(a, start)) for a, b in spans) / (end - start)
 
 
 @dataclass
@@ -107,7 +117,9 @@ class ViewerCostBenchmark(LiveViewerRun):
         remote = [("remote", parse(setting)) for setting in self.settings]
         return [("none", None), *remote, *[("chromium", parse(setting)) for setting in self.browser_settings]]
 
-    def drive(self, trainer: ContinualTrainer, clock: StepClock, rates: Dict[str, List[float]], profile: Path) -> None:
+    def drive(
+        self, trainer: ContinualTrainer, clock: StepClock, rates: Dict[str, List[Tuple[float, float]]], profile: Path
+    ) -> None:
         """Open and close the pages phase by phase, recording iterations per second."""
         viewer = trainer.viewer_state
         assert isinstance(viewer, Viewer)
@@ -117,7 +129,7 @@ class ViewerCostBenchmark(LiveViewerRun):
         port = trainer.config.viewer.websocket_port or 0
         browser = DevTools(profile, window_size=self.window_size)
         try:
-            wait_for("training to start", lambda: len(clock.times) > 3, timeout=600)
+            wait_for("training to start", lambda: len(clock.ends) > 3, timeout=600)
             for round_number in range(self.rounds):
                 for page, setting in self.phases():
                     name = CLOSED if setting is None else f"{page}, {setting[0]} px, util {setting[1]:g}"
@@ -130,37 +142,46 @@ class ViewerCostBenchmark(LiveViewerRun):
                         browser.navigate(viewer_url(trainer))
                     start = time.perf_counter() + self.settle_seconds
                     time.sleep(self.settle_seconds + self.phase_seconds)
-                    rates.setdefault(name, []).append(clock.rate(start, start + self.phase_seconds))
+                    end = start + self.phase_seconds
+                    rates.setdefault(name, []).append((clock.rate(start, end), clock.share(start, end)))
                     render = viewer_render_rays_per_second()
                     if setting is not None and render is not None:
                         self.render_speeds.setdefault(name, []).append(render)
-                    CONSOLE.log(
-                        f"round {round_number + 1}: {name}: {rates[name][-1]:.2f} it/s, renders {render} rays/s"
-                    )
+                    iterations, share = rates[name][-1]
+                    CONSOLE.log(f"round {round_number + 1}: {name}: {iterations:.2f} it/s, {100 * share:.0f}% training")
                     if remote is not None:
                         remote.close()
                     browser.navigate("about:blank")
         finally:
             browser.close()
 
-    def measure(self, output_dir: Path) -> Dict[str, List[float]]:
+    def measure(self, output_dir: Path) -> Dict[str, List[Tuple[float, float]]]:
         trainer = self.set_up(output_dir, num_tasks=10, iterations_per_task=10**8)  # the benchmark ends it
         clock = StepClock()
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], clock.tick))
-        rates: Dict[str, List[float]] = {}
+        trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], clock.start))
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], clock.end))
+        rates: Dict[str, List[Tuple[float, float]]] = {}
         train_while(trainer, lambda: self.drive(trainer, clock, rates, output_dir / "chromium-profile"))
         return rates
 
-    def report(self, rates: Dict[str, List[float]]) -> None:
+    def report(self, rates: Dict[str, List[Tuple[float, float]]]) -> None:
+        """Medians over the rounds; each phase's share of time in training relative to the no-page phase's share
+        of its round is the speed training keeps with that page open."""
         table = Table(title=f"continual-ngp training with a viewer page open, {self.device}")
-        for column in ("page", "iterations/s (median)", "vs no page (median of rounds)", "render rays/s"):
+        columns = ("page", "iterations/s", "time in training", "speed kept vs no page", "render rays/s")
+        for column in columns:
             table.add_column(column, justify="right")
         closed = rates[CLOSED]
         for name, values in rates.items():
-            ratio = statistics.median(value / base for value, base in zip(values, closed))
+            kept = statistics.median(share / base for (_, share), (_, base) in zip(values, closed))
             render = self.render_speeds.get(name)
-            render_text = f"{statistics.median(render):,.0f}" if render else "-"
-            table.add_row(name, f"{statistics.median(values):.2f}", f"{100 * ratio:.0f}%", render_text)
+            table.add_row(
+                name,
+                f"{statistics.median(rate for rate, _ in values):.2f}",
+                f"{100 * statistics.median(share for _, share in values):.0f}%",
+                f"{100 * kept:.0f}%",
+                f"{statistics.median(render):,.0f}" if render else "-",
+            )
         CONSOLE.print(table)
 
     def main(self) -> None:
