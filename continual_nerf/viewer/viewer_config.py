@@ -7,10 +7,12 @@ from typing import Optional
 
 from nerfstudio.configs.base_config import ViewerConfig
 
-DEFAULT_MAX_RES = 256
-"""Max res of the live render: `python -m continual_nerf.bench.viewer_cost` measured it (docs/benchmarks.md)."""
+DEFAULT_MAX_RES = 64
+"""Max res of the live render. nerfstudio renders a still view at this size while holding training's lock; on a
+2-core CPU 64 kept training at >= 80% of its speed and 128 did not (`python -m continual_nerf.bench.viewer_cost`,
+docs/benchmarks.md)."""
 DEFAULT_TRAIN_UTIL = 0.95
-"""Share of the time nerfstudio's render scheduling leaves training: measured with DEFAULT_MAX_RES."""
+"""Share of the time nerfstudio's render scheduling leaves training (measured with DEFAULT_MAX_RES)."""
 
 
 @dataclass
@@ -26,7 +28,7 @@ class ContinualViewerConfig(ViewerConfig):
     camera_frustum_scale: Optional[float] = None  # type: ignore[assignment]
     """Size of the task frustums in viser units; None: a fraction of the extent of the trajectory known at the start."""
     max_res: int = DEFAULT_MAX_RES
-    """Start value of the render's "Max res" slider (nerfstudio's 512 slows training on a CPU)."""
+    """Start value of the render's "Max res" slider (nerfstudio's 512 stalls training on a CPU; raise it on a GPU)."""
     train_util: float = DEFAULT_TRAIN_UTIL
     """Start value of the "Train Util" slider: the share of time nerfstudio's render scheduling leaves training."""
     follow_newest_task: bool = False
