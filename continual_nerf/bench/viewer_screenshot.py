@@ -35,8 +35,8 @@ class ViewerScreenshot(LiveViewerRun):
     """Take it once this many tasks have ended (their frustums and accuracy rows are shown)."""
     settle_seconds: float = 20.0
     """Seconds the page is left to render after that task ends."""
-    colours: int = 64
-    """Palette size of the PNG: keeps the file small."""
+    colours: int = 256
+    """Palette size of the PNG (at most 256): keeps the file small."""
     window_size: str = "1200,800"
     """Chromium's window (width,height)."""
 
