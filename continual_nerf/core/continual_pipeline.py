@@ -55,6 +55,8 @@ class ContinualStatus:
     """The open task's budget: what is left, or what training does once it is spent."""
     psnr_rows: List[List[float]]
     """The accuracy matrix so far: test PSNR per task after each finished task."""
+    mean_psnr: List[float]
+    """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
     """Whether the run has trained its last task."""
 
@@ -113,6 +115,7 @@ class ContinualPipeline(VanillaPipeline):
             capture_running=not self.datamanager.capture_finished,
             progress=progress,
             psnr_rows=[list(row) for row in self.accuracy.psnr],
+            mean_psnr=list(self.accuracy.mean_psnr),
             finished=self.accuracy.finished,
         )
 
@@ -162,7 +165,7 @@ class ContinualPipeline(VanillaPipeline):
             trainer.stop_training = True
         else:
             self.open_next_task()
-            CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} released at step {step + 1}")
+            CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} starts at step {step + 1}")
         trainer.save_checkpoint(step)
 
     def before_task_switch(self) -> None:
@@ -206,7 +209,7 @@ class ContinualPipeline(VanillaPipeline):
         )
         writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
         CONSOLE.print(
-            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step + 1}: "
+            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
             f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
         )
 

@@ -16,6 +16,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.utils.writer import EventName
 from nerfstudio.viewer.viewer import Viewer
 
 from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
@@ -37,6 +38,7 @@ from continual_nerf.nerfstudio_compat import first_step, leave_pause, set_resume
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
@@ -53,6 +55,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False
     """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
+    viewer: ContinualViewerConfig = field(default_factory=ContinualViewerConfig)
+    """nerfstudio's viewer with the continual panel: the released tasks' cameras, the accuracy matrix, controls."""
 
     def validate(self) -> None:
         super().validate()
@@ -142,18 +146,46 @@ class ContinualTrainer(Trainer):
 
     def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
         self.config.max_num_iterations = self._iterations_to_run()
+        if self.config.max_num_iterations == UNBOUNDED_ITERATIONS:  # no end known: an ETA would count to the cap
+            writer_config = self.config.logging.local_writer
+            writer_config.stats_to_track = tuple(s for s in writer_config.stats_to_track if s != EventName.ETA)
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
         with one_line_exit(self.config.method_name):
             super().setup(test_mode)
-        warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
         if isinstance(self.viewer_state, Viewer):
-            pipeline = self.pipeline
-            self.panel = ContinualPanel(
-                pipeline.status, pipeline.request_next_task, lambda: pipeline.datamanager.train_dataset
+            self.panel = self._install_panel(self.viewer_state)
+        show_stage = self.panel.show_stage if self.panel is not None else lambda stage: None
+        warm_up(
+            self.pipeline.model,
+            self.config.pipeline.datamanager.train_num_rays_per_batch,
+            progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
+        )
+        show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    def _install_panel(self, viewer: Viewer) -> ContinualPanel:
+        """The continual panel, in the viewer from the moment it answers (before the model compiles)."""
+        pipeline = self.pipeline
+        panel = ContinualPanel(
+            pipeline.status,
+            pipeline.request_next_task,
+            lambda: pipeline.datamanager.train_dataset,
+            self.config.viewer,
+        )
+        panel.install(viewer, self.training_state)
+        self.callbacks += panel.training_callbacks(self)
+        return panel
+
+    def _check_viewer_warnings(self) -> None:
+        # nerfstudio's note says no evaluation runs with the viewer alone: its periodic evaluation does not, but the
+        # accuracy matrix is measured at the end of every task whatever --vis says
+        if self.config.is_viewer_enabled() and not self.config.is_tensorboard_enabled():
+            CONSOLE.print(
+                "[NOTE] The test PSNR of every task is measured at the end of each task (viewer panel, "
+                "accuracy_matrix.json); --vis viewer+tensorboard also logs the losses and nerfstudio's periodic "
+                "evaluation."
             )
-            self.callbacks += self.panel.training_callbacks(self)
 
     def _iterations_to_run(self) -> int:
         """The task budget's iterations (a generous cap when tasks are timed or streamed), or --max-num-iterations."""
@@ -292,8 +324,7 @@ class ContinualTrainer(Trainer):
         }
 
     def _init_viewer_state(self) -> None:
-        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown
-        if isinstance(self.viewer_state, Viewer) and self.panel is not None:
-            self.panel.attach(self.viewer_state, self)
-        else:
+        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown, and
+        # the panel drew them when it was installed at set-up
+        if self.panel is None:
             super()._init_viewer_state()
