@@ -22,7 +22,7 @@ from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.evaluation import evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
-from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
@@ -51,6 +51,12 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
         super().validate()
         if not 0 < self.lr_decay_per_task <= 1:
             raise ContinualConfigError(f"--pipeline.lr-decay-per-task must be in (0, 1], got {self.lr_decay_per_task}")
+        learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
+        if learns_per_frame and not self.datamanager.frames_known_at_start():
+            raise ContinualConfigError(
+                "--pipeline.model.use-appearance-embedding and --pipeline.model.camera-optimizer.mode need every "
+                "frame known when training starts; this datamanager receives frames while it trains"
+            )
 
 
 @dataclass(frozen=True)
@@ -96,6 +102,7 @@ class ContinualPipeline(VanillaPipeline):
             self.datamanager.replay_buffer = self.replay_buffer
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
+        self._open_frame_parameters(start=True)
 
     @property
     def replays(self) -> bool:
@@ -207,6 +214,12 @@ class ContinualPipeline(VanillaPipeline):
         self.task.current += 1
         self.budget.start_task()
         self.datamanager.release(self.task.current)
+        self._open_frame_parameters(start=True)
+
+    def _open_frame_parameters(self, start: bool) -> None:
+        """Let the model learn the appearance codes and pose corrections of the open task's frames only."""
+        if isinstance(self.model, ContinualNGPModel):
+            self.model.open_task(self.datamanager.data_task, start)
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
@@ -251,7 +264,9 @@ class ContinualPipeline(VanillaPipeline):
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
         if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
             self.replay_oracle.update(self.model)  # builds the copy the saved weights go into
-        return super().load_state_dict(state_dict, strict)
+        result = super().load_state_dict(state_dict, strict)
+        self._open_frame_parameters(start=False)  # the loaded task continues with the loaded codes and poses
+        return result
 
     def get_extra_state(self) -> Dict[str, Any]:
         # the task, its progress and the accuracy matrix so far: a resumed run continues where this one stopped and

@@ -11,6 +11,7 @@ from torch import nn
 
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.per_frame import TRAINING_FRAME
 
 
 class ReplayOracle(nn.Module):
@@ -50,7 +51,10 @@ class ReplayOracle(nn.Module):
 
     @torch.no_grad()
     def render(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
-        """What the frozen copy renders along each ray: colour (N, 3) and expected depth (N, 1)."""
+        """What the frozen copy renders along each ray: colour (N, 3) and expected depth (N, 1), each ray with the
+        appearance code and refined pose of the frame it came from, as training rendered that frame."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
+        assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
+        ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
         outputs = self.model(ray_bundle)
         return {"rgb": outputs["rgb"], "depth": outputs["depth"]}
