@@ -11,6 +11,7 @@ import pytest
 import torch
 from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import nn
 
@@ -116,3 +117,30 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         assert not viewer.pause_train.visible and viewer.resume_train.visible
     finally:
         trainer.shutdown()
+
+
+def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_otherwise():
+    config = ContinualNGPModelConfig(compile=False, use_appearance_embedding=True, appearance_embed_dim=4)
+    model = small_model(config).setup(scene_box=SCENE_BOX, num_train_data=2)
+    codes = compat.appearance_codes(model.field)
+    assert codes is not None
+    with torch.no_grad():
+        codes.embedding.weight.copy_(torch.tensor([[3.0, -3.0, 3.0, -3.0], [-3.0, 3.0, -3.0, 3.0]]))
+    replacement = Embedding(2, 4)
+    compat.set_appearance_codes(model.field, replacement)
+    assert compat.appearance_codes(model.field) is replacement
+    compat.set_appearance_codes(model.field, codes)
+    model.eval()
+
+    def rendered(frame: int) -> torch.Tensor:
+        torch.manual_seed(0)
+        rays = random_rays(model, 16)
+        rays.camera_indices = torch.full_like(rays.camera_indices, frame)
+        with torch.no_grad():
+            return model(rays)["rgb"]
+
+    assert torch.equal(rendered(0), rendered(1)), "outside training every ray gets the mean code"
+    with compat.codes_looked_up_per_ray(model.field):
+        assert (rendered(0) - rendered(1)).abs().max() > 1e-4, "each ray gets its frame's code"
+        assert not model.proposal_networks.training, "only the field's own flag is set"
+    assert not model.field.training

@@ -21,7 +21,14 @@ from continual_nerf.compilation import random_rays
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig, camera_ids
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
-from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK, TRAINING_FRAME, OpenTaskRows, code_of_frame
+from continual_nerf.core.per_frame import (
+    FRAME_CAMERA,
+    FRAME_TASK,
+    TRAINING_FRAME,
+    OpenTaskRows,
+    code_of_frame,
+    refine_rays,
+)
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_split import nearest_train_frames, split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -100,6 +107,19 @@ def test_the_oracle_renders_each_replayed_ray_with_its_own_frames_code_and_refin
     torch.testing.assert_close(
         render(torch.ones(64, dtype=torch.long)), render(torch.zeros(64, dtype=torch.long), moved)
     )
+
+
+def test_rays_are_refined_as_nerfacto_refines_training_rays():
+    model = model_with_codes_and_poses(tasks=[0, 0, 0], cameras=[0, 0, 0])
+    with torch.no_grad():
+        model.camera_optimizer.pose_adjustment.copy_(0.05 * torch.randn(3, 6))
+    rays = random_rays(model, 12)
+    rays.camera_indices = (torch.arange(12) % 3)[:, None]
+    ours, nerfstudios = dataclasses.replace(rays), dataclasses.replace(rays)
+    refine_rays(model.camera_optimizer, ours)
+    model.camera_optimizer.apply_to_raybundle(nerfstudios)
+    torch.testing.assert_close(ours.origins, nerfstudios.origins)
+    torch.testing.assert_close(ours.directions, nerfstudios.directions)
 
 
 def test_each_test_frame_takes_the_nearest_training_frame_of_its_task_and_camera():
