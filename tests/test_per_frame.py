@@ -170,6 +170,9 @@ def test_test_frames_render_with_their_nearest_training_frames_code():
     with torch.no_grad():
         model.field.embedding_appearance.embedding.weight[int(nearest[1])] += 1.0
     assert (rendered() - before).abs().max() > 1e-3
+    # ns-eval and the viewer's eval images take their cameras from these loaders: the metadata comes along
+    loaded = [camera.metadata[TRAINING_FRAME].item() for camera, _ in datamanager.fixed_indices_eval_dataloader]
+    assert loaded == nearest.tolist()
 
 
 def test_codes_and_poses_need_every_frame_from_the_start():
