@@ -4,34 +4,24 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from helpers import SUBPROCESS_ENV, demo_parser, tiny_config, train
+from helpers import demo_parser, tiny_config, train
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
+from continual_nerf.export_poses import ExportPoses
 
 pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
 
 NUM_FRAMES = 16
 
 
-def exported(run_dir: Path, output: Path) -> dict:
-    command = [str(Path(sys.executable).with_name("continual-nerf-export-poses")), "--load-config", str(run_dir)]
-    result = subprocess.run(
-        [*command, "--output-dir", str(output)],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=SUBPROCESS_ENV,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
+def exported(config: Path, output: Path) -> dict:
+    ExportPoses(load_config=config, output_dir=output).main()  # continual-nerf-export-poses, in this process
     return json.loads((output / "transforms.json").read_text())
 
 

@@ -31,6 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
+from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
 from continual_nerf.bench.quality import RunSummary, Setting
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
@@ -153,7 +154,7 @@ def training_pose_errors(trainer: ContinualTrainer, demo: ContinualDemoDataParse
 
 
 @dataclass
-class RealCaptureBenchmark:
+class RealCaptureBenchmark(DemoBenchmark):
     """Trains continual-ngp on the demo with each flaw of a real capture, each answering feature off and on."""
 
     scenes: Tuple[Scene, ...] = ("room", "street")
@@ -163,21 +164,13 @@ class RealCaptureBenchmark:
     features: Tuple[str, ...] = tuple(FEATURES)
     """Which features' runs to train (names as the tables print them); the clean capture's run with none is always
     trained, as every table's reference."""
-    rays_per_batch: int = 1024
-    """Rays per training batch (the paper's 1024)."""
     small_model: bool = False
     """A hash grid small enough to train in minutes on a CPU: a quick look, not the measurement."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device every run trains on."""
-    data: Path = Path("data/continual-demo")
-    """Where the demo scenes are generated (and reused from)."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
     def main(self) -> None:
-        unknown = [name for name in self.features if name not in FEATURES]
-        if unknown:
-            raise SystemExit(f"--features: unknown {', '.join(unknown)} (known: {', '.join(FEATURES)})")
+        check_names("features", self.features, FEATURES)
         results = {scene: self.run_scene(scene) for scene in self.scenes}
         for scene, runs in results.items():
             self.print_table(scene, runs)
