@@ -158,7 +158,8 @@ class RealCaptureBenchmark(DemoBenchmark):
     """Trains continual-ngp on the demo with each flaw of a real capture, each answering feature off and on."""
 
     scenes: Tuple[Scene, ...] = ("room", "street")
-    """Built-in scenes to measure on (continual-demo --scene); RUNS lists each one's runs."""
+    """Built-in scenes to measure on (continual-demo --scene): the room with exposure changes and pose errors, the
+    street with its cameras' colour responses."""
     setting: str = "5x240"
     """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
     features: Tuple[str, ...] = tuple(FEATURES)
