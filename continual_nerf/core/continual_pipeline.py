@@ -32,6 +32,8 @@ ORACLE_PREFIX = "replay_oracle.model."
 """State-dict keys of the replay oracle's frozen copy in a checkpoint."""
 BASE_LR_KEY = "continual_base_lr"
 """Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
+POSE_GROUP = "camera_opt"
+"""nerfacto's parameter group of the pose corrections."""
 
 
 @dataclass
@@ -46,11 +48,16 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     lr_decay_per_task: float = 1.0
     """Factor every learning rate falls to, exponentially, over each task's budget, restarting at the next task;
     1 keeps it constant (the paper)."""
+    pose_lr_decay_per_task: float = 0.1
+    """Factor the pose corrections' learning rate (--pipeline.model.camera-optimizer.mode) falls to over each task's
+    budget instead: a task's frames refine anew, from nerfacto's 1e-3 down to its final 1e-4; 1 keeps it constant."""
 
     def validate(self) -> None:
         super().validate()
-        if not 0 < self.lr_decay_per_task <= 1:
-            raise ContinualConfigError(f"--pipeline.lr-decay-per-task must be in (0, 1], got {self.lr_decay_per_task}")
+        for name in ("lr_decay_per_task", "pose_lr_decay_per_task"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in (0, 1], got {value}")
         learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
         if learns_per_frame and not self.datamanager.frames_known_at_start():
             raise ContinualConfigError(
@@ -163,17 +170,22 @@ class ContinualPipeline(VanillaPipeline):
         assert trainer is not None and optimizers is not None
         before = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION
         decay = [TrainingCallback([before], self._decay_learning_rates, args=[optimizers])]
+        decays = self.config.lr_decay_per_task < 1 or (
+            self.config.pose_lr_decay_per_task < 1 and POSE_GROUP in optimizers.optimizers
+        )
         return super().get_training_callbacks(training_callback_attributes) + [
-            *(decay if self.config.lr_decay_per_task < 1 else []),
+            *(decay if decays else []),
             TrainingCallback([before], self._start_clock),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration, args=[trainer]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._print_summary),
         ]
 
     def _decay_learning_rates(self, optimizers: Optimizers, step: int) -> None:
-        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task)."""
-        factor = self.config.lr_decay_per_task ** self.budget.progress()
-        for optimizer in optimizers.optimizers.values():
+        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task), the pose
+        corrections' times pose_lr_decay_per_task ** (progress through the task)."""
+        for name, optimizer in optimizers.optimizers.items():
+            decay = self.config.pose_lr_decay_per_task if name == POSE_GROUP else self.config.lr_decay_per_task
+            factor = decay ** self.budget.progress()
             for group in optimizer.param_groups:
                 group.setdefault(BASE_LR_KEY, group["lr"])  # in the optimizer's state: a resumed run keeps it
                 group["lr"] = group[BASE_LR_KEY] * factor
