@@ -35,7 +35,12 @@ CONTINUAL_NGP = ContinualTrainerConfig(
         datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
         model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
     ),
-    optimizers={"proposal_networks": _adam(), "fields": _adam()},
+    optimizers={
+        "proposal_networks": _adam(),
+        "fields": _adam(),
+        # pose corrections (--pipeline.model.camera-optimizer.mode): nerfacto's rate, constant as the others
+        "camera_opt": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
+    },
     viewer=ContinualViewerConfig(),
     vis="viewer",
 )

@@ -20,6 +20,8 @@ import torchmetrics.image.lpip
 import viser.transforms as vtf
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
+from nerfstudio.field_components.embedding import Embedding
+from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
@@ -78,6 +80,37 @@ def hot_modules(model: NerfactoModel) -> List[nn.Module]:
     if field.spatial_distortion is not None:  # one instance, shared with the proposal networks
         modules.append(field.spatial_distortion)
     return modules
+
+
+def appearance_codes(field: NerfactoField) -> Optional[Embedding]:
+    """The field's appearance embedding (None without one).
+
+    Depends on: `NerfactoField.embedding_appearance`, indexed by the ray samples' camera indices while training.
+    """
+    return field.embedding_appearance
+
+
+def set_appearance_codes(field: NerfactoField, codes: Embedding) -> None:
+    """Make the field look its appearance codes up in `codes` (an embedding of the same size and dimension)."""
+    field.embedding_appearance = codes
+
+
+@contextmanager
+def codes_looked_up_per_ray(field: NerfactoField) -> Iterator[None]:
+    """Outside training, let `field` give every ray its own frame's appearance code (it gives all the mean code).
+
+    Depends on: `NerfactoField.get_outputs` reading `self.training` only to choose between per-ray codes and their
+    mean (and for transient embeddings, which nerfacto never turns on); the field's submodules keep their own flags.
+    """
+    if field.embedding_appearance is None:
+        yield
+        return
+    was_training = field.training
+    field.training = True
+    try:
+        yield
+    finally:
+        field.training = was_training
 
 
 def replace_forward(module: nn.Module, forward: Callable[..., Any]) -> None:

@@ -92,6 +92,8 @@ class CaptureFrames:
     """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2], or None for undistorted images."""
     time_group: Optional[np.ndarray] = None
     """(N,) capture instant of each image for multi-camera rigs: images of one instant stay in one task."""
+    camera_id: Optional[np.ndarray] = None
+    """(N,) which camera of a rig took each image (None: cameras told apart by their intrinsics)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -103,7 +105,7 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group")
+            for name in ("distortion", "time_group", "camera_id")
         }
         return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
 
@@ -236,8 +238,11 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
 
 
 def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
-    """What the continual datamanager reads besides cameras: the image downscale and the capture instants."""
+    """What the continual datamanager reads besides cameras: the image downscale, the capture instants and which
+    camera took each image."""
     metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
-    if frames.time_group is not None:
-        metadata["time_group"] = torch.from_numpy(np.asarray(frames.time_group)).long()
+    for key in ("time_group", "camera_id"):
+        value = getattr(frames, key)
+        if value is not None:
+            metadata[key] = torch.from_numpy(np.asarray(value)).long()
     return metadata

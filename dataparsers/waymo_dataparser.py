@@ -159,6 +159,7 @@ def capture_frames(segment: WaymoSegment) -> CaptureFrames:
         height=np.array([calibration.height for calibration in calibrations]),
         distortion=np.stack([k1, k2, k3, np.zeros_like(k1), p1, p2], axis=1),
         time_group=segment.timestamps,
+        camera_id=np.array([CAMERA_IDS[name] for name in segment.cameras]),
     )
 
 

@@ -488,6 +488,14 @@ PARSER_OPTIONS = [
     (ContinualDemoDataParserConfig(num_frames=0), "continual-demo --num-frames must be at least 1, got 0"),
     (ContinualDemoDataParserConfig(fov_degrees=180.0), "continual-demo --fov-degrees must be in (0, 180), got 180.0"),
     (
+        ContinualDemoDataParserConfig(exposure_strength=1.0),
+        "continual-demo --exposure-strength must be in [0, 1), got 1.0",
+    ),
+    (
+        ContinualDemoDataParserConfig(pose_noise_degrees=-1.0),
+        "continual-demo --pose-noise-degrees must not be negative, got -1.0",
+    ),
+    (
         OrderedCaptureDataParserConfig(order="random"),
         "--order must be one of auto, timestamp, filename, file, got random",
     ),

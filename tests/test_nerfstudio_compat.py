@@ -19,6 +19,7 @@ from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
+from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import nn
 
@@ -201,3 +202,30 @@ def test_the_viewers_render_speed_is_read_where_the_render_thread_puts_it():
     writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=1000.0, step=0, avg_over_steps=True)
     writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=3000.0, step=1, avg_over_steps=True)
     assert compat.viewer_render_rays_per_second() == 2000.0
+
+
+def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_otherwise():
+    config = ContinualNGPModelConfig(compile=False, use_appearance_embedding=True, appearance_embed_dim=4)
+    model = small_model(config).setup(scene_box=SCENE_BOX, num_train_data=2)
+    codes = compat.appearance_codes(model.field)
+    assert codes is not None
+    with torch.no_grad():
+        codes.embedding.weight.copy_(torch.tensor([[3.0, -3.0, 3.0, -3.0], [-3.0, 3.0, -3.0, 3.0]]))
+    replacement = Embedding(2, 4)
+    compat.set_appearance_codes(model.field, replacement)
+    assert compat.appearance_codes(model.field) is replacement
+    compat.set_appearance_codes(model.field, codes)
+    model.eval()
+
+    def rendered(frame: int) -> torch.Tensor:
+        torch.manual_seed(0)
+        rays = random_rays(model, 16)
+        rays.camera_indices = torch.full_like(rays.camera_indices, frame)
+        with torch.no_grad():
+            return model(rays)["rgb"]
+
+    assert torch.equal(rendered(0), rendered(1)), "outside training every ray gets the mean code"
+    with compat.codes_looked_up_per_ray(model.field):
+        assert (rendered(0) - rendered(1)).abs().max() > 1e-4, "each ray gets its frame's code"
+        assert not model.proposal_networks.training, "only the field's own flag is set"
+    assert not model.field.training

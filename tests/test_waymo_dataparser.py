@@ -195,6 +195,9 @@ def test_parser_outputs_are_the_segment_normalised(tmp_path):
         offsets, outputs.dataparser_scale * np.linalg.norm(relative[:, :3, 3], axis=1), atol=1e-5
     )
     assert outputs.cameras.distortion_params.shape == (NUM_TIMES * len(CAMERAS), 6)
+    names = capture_frames(read_segment(parser_config))
+    assert outputs.metadata["camera_id"].tolist() == names.camera_id.tolist(), "which camera took each image"
+    assert set(outputs.metadata["camera_id"].tolist()) == {CAMERA_IDS[name] for name in CAMERAS}
 
 
 def test_the_stored_transform_maps_back_to_waymo_world_coordinates(tmp_path):

@@ -13,6 +13,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from PIL import Image, UnidentifiedImageError
 
+from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.errors import DatasetError, first_line
 from continual_nerf.untrusted_files import check_regular
 
@@ -30,6 +31,7 @@ class ContinualDataset(InputDataset):
     Camera rays (poses and intrinsics) of every frame stay available: the continual setting allows
     rays of past tasks. Pixels of a task are loaded when it opens and dropped when it closes; reading
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
+    The task and camera of every frame are in its metadata, which nerfstudio hands to the model.
     """
 
     def __init__(
@@ -38,9 +40,13 @@ class ContinualDataset(InputDataset):
         task_of_frame: np.ndarray,
         scale_factor: float = 1.0,
         for_training: bool = True,
+        camera_of_frame: Optional[np.ndarray] = None,
     ):
         super().__init__(dataparser_outputs, scale_factor=scale_factor)
         self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
+        self.metadata[FRAME_TASK] = self.task_of_frame
+        cameras = np.zeros_like(task_of_frame) if camera_of_frame is None else camera_of_frame
+        self.metadata[FRAME_CAMERA] = torch.as_tensor(cameras, dtype=torch.long)
         self.for_training = for_training
         """False once training is over (ns-eval, ns-render, ns-viewer): then every frame is readable."""
         self.open_task: Optional[int] = None

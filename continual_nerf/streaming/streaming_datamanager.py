@@ -61,6 +61,10 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
                 "--pipeline.datamanager.joint needs every task from the start; a capture has not sent them yet"
             )
 
+    def frames_known_at_start(self) -> bool:
+        """Frames keep arriving while training runs: no per-frame codes or poses for frames not there yet."""
+        return False
+
     def budgeted_iterations(self) -> Optional[int]:
         """The capture decides how many tasks there are."""
         return None
