@@ -229,7 +229,8 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         for name, value in travel.pipeline.model.state_dict().items():
             if isinstance(value, torch.Tensor):
                 assert torch.equal(value, end_of_task_1["pipeline"][f"_model.{name}"]), name
-        assert chromium.input_value("Mean test PSNR") == f"{accuracy.mean_psnr[0]:.2f} dB after task 1"
+        task_1_mean = f"{accuracy.mean_psnr[0]:.2f} dB after task 1"
+        wait_for("task 1's mean on the page", lambda: chromium.input_value("Mean test PSNR") == task_1_mean)
         wait_for("task 1's render on the page", lambda: chromium.screenshot_png() != after_task_2)
         assert {int(name.split("_")[-1]) for name in frustums(travel.viewer)} == set(
             travel.dataset.frames_of_task(0).tolist()
