@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Dict, Literal, Optional, Type
 
 import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -23,10 +24,11 @@ from continual_nerf.checkpoints import (
     save_checkpoint_file,
 )
 from continual_nerf.compilation import warm_up
+from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
-from continual_nerf.nerfstudio_compat import set_resume_step
+from continual_nerf.nerfstudio_compat import launch_processes_here, set_resume_step
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
 
@@ -64,7 +66,13 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
 
     def save_config(self) -> None:
-        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten."""
+        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten.
+
+        `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
+        (CPU processes, one-line errors).
+        """
+        if self.machine.num_devices * self.machine.num_machines > 1:
+            launch_processes_here()
         base_dir = self.get_base_dir()
         source = self.resume_source()
         continuing_in_place = source is not None and source.resolve() == base_dir.resolve()
@@ -106,6 +114,9 @@ class ContinualTrainer(Trainer):
                 pipeline.status, pipeline.request_next_task, lambda: pipeline.datamanager.train_dataset
             )
             self.callbacks += self.panel.training_callbacks(self)
+        if distributed.is_distributed():  # last: a pause the panel starts at a task's end holds every rank
+            location = TrainingCallbackLocation.AFTER_TRAIN_ITERATION
+            self.callbacks.append(TrainingCallback([location], distributed.hold_while_paused, args=[self]))
 
     def _iterations_to_run(self) -> int:
         """The task budget's iterations (a generous cap when tasks are timed or streamed), or --max-num-iterations."""
@@ -120,11 +131,13 @@ class ContinualTrainer(Trainer):
 
     def train(self) -> None:
         accuracy = self.pipeline.accuracy
-        accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
+        main = distributed.is_main()  # rank 0 alone writes results
+        if main:
+            accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
         try:
             super().train()
         except Exception as error:
-            if not accuracy.finished:
+            if main and not accuracy.finished:
                 accuracy.status = "failed"
                 accuracy.write(self.base_dir)
             if isinstance(error, ContinualNerfError):  # for instance an image of a task released mid-run
@@ -145,7 +158,8 @@ class ContinualTrainer(Trainer):
         accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
-        restore_rng_states(state["rng"])
+        if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
+            restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
             f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
@@ -180,7 +194,7 @@ class ContinualTrainer(Trainer):
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
             "step": step,
-            "pipeline": self.pipeline.state_dict(),
+            "pipeline": self.pipeline.checkpoint_state_dict(),
             "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),
