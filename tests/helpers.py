@@ -6,18 +6,25 @@ ScanNet exported folder and .sens, TUM RGB-D, Waymo v1 TFRecord and v2 Parquet),
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import json
 import os
+import signal
 import struct
+import subprocess
 import sys
+import time
 import zlib
+from datetime import timedelta
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.data.dataparsers.base_dataparser import (
     DataParserConfig,
     DataparserOutputs,
@@ -32,6 +39,7 @@ from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
 from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.nerfstudio_compat import seed_like_ns_train
 from continual_nerf.recipes import quiet_config, train_like_ns_train
 
 DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
@@ -542,3 +550,101 @@ def corrupt(path: Path, offset: int) -> None:
     data = bytearray(path.read_bytes())
     data[offset] ^= 0x01
     path.write_bytes(bytes(data))
+
+
+# ---- several processes (nerfstudio's launcher, gloo on CPU) ----
+
+RANK_RECORDS = "rank-records"
+"""Folder of a multi-process test run where each rank writes what it did (recorded_train_loop)."""
+
+
+def launch_two_processes(config: ContinualTrainerConfig, timeout_seconds: float, **recording: Any) -> None:
+    """What `ns-train --machine.num-devices 2` does with `config`: save it, then nerfstudio's `launch` with its
+    process-group timeout shortened; every rank runs recorded_train_loop with `recording`'s options."""
+    from nerfstudio.scripts import train
+
+    config.machine.num_devices = 2
+    config.save_config()  # routes the processes through the plugin's worker, as ns-train's main does
+    train.launch(
+        main_func=functools.partial(recorded_train_loop, **recording),
+        num_devices_per_machine=2,
+        config=config,
+        timeout=timedelta(seconds=timeout_seconds),
+        device_type=config.machine.device_type,
+    )
+
+
+def recorded_train_loop(
+    local_rank: int,
+    world_size: int,
+    config: ContinualTrainerConfig,
+    global_rank: int = 0,
+    slow_rank: int = -1,
+    slow_seconds: float = 0.0,
+    dying_rank: int = -1,
+) -> None:
+    """nerfstudio's train_loop (seeded per rank, set up, trained) that records, at each task switch, the step, this
+    rank's budget and the replay oracle's weights; `slow_rank` sleeps `slow_seconds` after each iteration, outside
+    the budget's clock; `dying_rank` kills itself after its second iteration."""
+    seed_like_ns_train(config.machine.seed + global_rank)
+    trainer = config.setup(local_rank=local_rank, world_size=world_size)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    records_dir = trainer.base_dir / RANK_RECORDS
+    records_dir.mkdir(parents=True, exist_ok=True)
+    switches: List[Dict[str, Any]] = []
+    open_next_task = pipeline.open_next_task
+
+    def recorded_switch() -> None:
+        budget = pipeline.budget
+        switches.append({"step": trainer.step, "seconds_done": budget.seconds_done, "seconds": budget.seconds})
+        open_next_task()
+        oracle = pipeline.replay_oracle.model
+        assert oracle is not None
+        torch.save(oracle.state_dict(), records_dir / f"oracle-rank{global_rank}-switch{len(switches)}.pt")
+
+    setattr(pipeline, "open_next_task", recorded_switch)
+    after = [TrainingCallbackLocation.AFTER_TRAIN_ITERATION]
+    if global_rank == slow_rank:
+        trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
+    if global_rank == dying_rank:
+        trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
+    trainer.train()
+    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
+    (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
+
+
+def _die_after_second_iteration(step: int) -> None:
+    if step == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
+    """launch_two_processes in a fresh interpreter (as ns-train runs), with tiny_config's options and `options`:
+    datamanager options, and recorded_train_loop's (slow_rank, slow_seconds, dying_rank)."""
+    script = (
+        "import json, sys; sys.path.insert(0, sys.argv[1]); import helpers; helpers.launch_from_json(sys.argv[2])"
+    )
+    arguments = json.dumps({"output_dir": str(output_dir), "timeout_seconds": timeout_seconds, **options})
+    return subprocess.run(
+        [sys.executable, "-c", script, str(Path(__file__).parent), arguments],
+        env=SUBPROCESS_ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def launch_from_json(arguments: str) -> None:
+    """two_process_run's side in the fresh interpreter."""
+    options = json.loads(arguments)
+    recording = {name: options.pop(name) for name in ("slow_rank", "slow_seconds", "dying_rank") if name in options}
+    timeout_seconds = options.pop("timeout_seconds")
+    config = tiny_config(Path(options.pop("output_dir")), demo_parser(), **options.pop("tiny", {}))
+    config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **options)
+    config.timestamp = "two-processes"
+    launch_two_processes(config, timeout_seconds, **recording)
+
+
+def two_process_run_dir(output_dir: Path) -> Path:
+    return output_dir / "unnamed" / "continual-ngp" / "two-processes"
