@@ -24,13 +24,13 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.data.dataparsers.base_dataparser import (
     DataParserConfig,
     DataparserOutputs,
     transform_poses_to_original_space,
 )
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from PIL import Image
 
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
@@ -622,12 +622,11 @@ def _die_after_second_iteration(step: int) -> None:
 def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
     """launch_two_processes in a fresh interpreter (as ns-train runs), with tiny_config's options and `options`:
     datamanager options, and recorded_train_loop's (slow_rank, slow_seconds, dying_rank)."""
-    script = (
-        "import json, sys; sys.path.insert(0, sys.argv[1]); import helpers; helpers.launch_from_json(sys.argv[2])"
-    )
+    script = "import json, sys; sys.path.insert(0, sys.argv[1]); import helpers; helpers.launch_from_json(sys.argv[2])"
     arguments = json.dumps({"output_dir": str(output_dir), "timeout_seconds": timeout_seconds, **options})
     return subprocess.run(
         [sys.executable, "-c", script, str(Path(__file__).parent), arguments],
+        check=False,
         env=SUBPROCESS_ENV,
         capture_output=True,
         text=True,

@@ -12,8 +12,8 @@ import pytest
 import torch
 from helpers import RANK_RECORDS, demo_parser, tiny_config, train, two_process_run, two_process_run_dir
 
-from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.checkpoints import checkpoint_steps, read_checkpoint
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 
 pytestmark = pytest.mark.slow  # trains models in subprocesses
 
@@ -85,5 +85,7 @@ def test_a_dying_rank_ends_the_run_with_one_line(tmp_path: Path):
     assert run.returncode != 0
     assert time.monotonic() - started < 120  # not a hang until a timeout
     last_line = run.stderr.strip().splitlines()[-1]
-    assert last_line == "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
+    assert (
+        last_line == "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
+    )
     assert "Traceback" not in run.stderr
