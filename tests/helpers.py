@@ -647,3 +647,22 @@ def launch_from_json(arguments: str) -> None:
 
 def two_process_run_dir(output_dir: Path) -> Path:
     return output_dir / "unnamed" / "continual-ngp" / "two-processes"
+
+
+def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
+    """One of two gloo processes: what continual_nerf.core.distributed's helpers give this rank, into rank<r>.pt."""
+    import torch.distributed as dist
+
+    from continual_nerf.core import distributed
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", world_size=2, rank=rank)
+    torch.manual_seed(rank)  # different weights on each rank
+    module = torch.nn.Linear(3, 2)
+    distributed.copy_from_main(module, "cpu")
+    results = {
+        "decided": distributed.decided_by_main(10 + rank, "cpu"),
+        "averaged": distributed.averaged_over_ranks({"fisher": torch.full((2,), 2.0 * rank)})["fisher"],
+        "weights": module.state_dict(),
+    }
+    torch.save(results, output_dir / f"rank{rank}.pt")
+    dist.destroy_process_group()

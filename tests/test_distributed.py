@@ -4,20 +4,42 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import time
 from pathlib import Path
 from typing import Any, Dict
 
 import pytest
 import torch
-from helpers import RANK_RECORDS, demo_parser, tiny_config, train, two_process_run, two_process_run_dir
+import torch.multiprocessing
+from helpers import (
+    RANK_RECORDS,
+    collectives_probe,
+    demo_parser,
+    tiny_config,
+    train,
+    two_process_run,
+    two_process_run_dir,
+)
 
 from continual_nerf.checkpoints import checkpoint_steps, read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.errors import ContinualConfigError
 
 pytestmark = pytest.mark.slow  # trains models in subprocesses
 
 NUM_TASKS, ITERATIONS_PER_TASK = 3, 3
+
+
+def test_every_rank_follows_rank_0_and_averages_estimates(tmp_path: Path):
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    torch.multiprocessing.spawn(collectives_probe, args=(port, tmp_path), nprocs=2)
+    main, other = (torch.load(tmp_path / f"rank{rank}.pt", weights_only=False) for rank in (0, 1))
+    assert main["decided"] == other["decided"] == 10  # rank 0's decision
+    assert torch.equal(main["averaged"], torch.ones(2)) and torch.equal(other["averaged"], torch.ones(2))  # (0+2)/2
+    assert all(torch.equal(main["weights"][key], other["weights"][key]) for key in main["weights"])
 
 
 def records(run_dir: Path, rank: int) -> Dict[str, Any]:
@@ -89,3 +111,11 @@ def test_a_dying_rank_ends_the_run_with_one_line(tmp_path: Path):
         last_line == "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
     )
     assert "Traceback" not in run.stderr
+
+
+def test_start_paused_is_refused_with_several_processes(tmp_path: Path):
+    config = tiny_config(tmp_path, demo_parser())
+    config.start_paused = True
+    config.machine.num_devices = 2
+    with pytest.raises(ContinualConfigError, match="--start-paused needs one process"):
+        config.validate()

@@ -212,6 +212,8 @@ class ContinualPipeline(VanillaPipeline):
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
         self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels())
+        if not distributed.is_main():
+            return  # every rank keeps its own random share; rank 0's is checkpointed
         CONSOLE.print(
             f"Replay buffer: {len(self.replay_buffer)} pixels of {self.task.current + 1} tasks, "
             f"{self.replay_buffer.nbytes / 2**20:.2f} MiB"

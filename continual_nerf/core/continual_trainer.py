@@ -52,6 +52,9 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         super().validate()
         if self.max_num_iterations is not None and self.max_num_iterations < 1:
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
+        if self.start_paused and self.machine.num_devices * self.machine.num_machines > 1:
+            # the other processes would wait for rank 0's first step in a collective that times out
+            raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
 
     def setup(self, **kwargs: Any) -> Any:
         try:
@@ -108,6 +111,10 @@ class ContinualTrainer(Trainer):
         except ContinualNerfError as error:
             raise SystemExit(f"{self.config.method_name}: error: {error}") from None
         warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
+        if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
+            # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
+            self.viewer_state.viser_server.stop()
+            self.viewer_state = None
         if isinstance(self.viewer_state, Viewer):
             pipeline = self.pipeline
             self.panel = ContinualPanel(
