@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 
-from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
@@ -16,6 +15,7 @@ from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 
 def _adam() -> dict:
@@ -35,8 +35,13 @@ CONTINUAL_NGP = ContinualTrainerConfig(
         datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
         model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
     ),
-    optimizers={"proposal_networks": _adam(), "fields": _adam()},
-    viewer=ViewerConfig(websocket_host="127.0.0.1", num_rays_per_chunk=1 << 13),
+    optimizers={
+        "proposal_networks": _adam(),
+        "fields": _adam(),
+        # pose corrections (--pipeline.model.camera-optimizer.mode): nerfacto's rate, constant as the others
+        "camera_opt": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
+    },
+    viewer=ContinualViewerConfig(),
     vis="viewer",
 )
 """continual-ngp: the paper's method; every other method is a difference from it."""
@@ -53,6 +58,7 @@ def _streaming(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
     config.method_name = "continual-ngp-stream"
     rays = config.pipeline.datamanager.train_num_rays_per_batch
     config.pipeline.datamanager = StreamingDataManagerConfig(train_num_rays_per_batch=rays)
+    config.viewer.follow_newest_task = True  # later tasks' cameras leave the first task's view
     return config
 
 

@@ -12,6 +12,7 @@ import pickle
 import random
 import re
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, Dict, Optional
 
@@ -54,10 +55,26 @@ def find_checkpoint(load_dir: Path, load_step: Optional[int]) -> Path:
     return steps[load_step]
 
 
-def read_checkpoint(path: Path) -> Dict[str, Any]:
-    """A checkpoint's content, unpickled with weights_only=True (tensors and plain containers only)."""
+def verify_archive(path: Path) -> None:
+    """Check every member of a checkpoint's zip archive against its CRC-32: torch.load reads tensors without doing
+    so, and a flipped bit would go into the model and the replay oracle unnoticed."""
     if path.is_file() and not zipfile.is_zipfile(path):  # torch.save writes a zip archive; a cut one has no index
         raise CheckpointError(f"{path}: not a readable checkpoint (not a complete torch.save archive: truncated?)")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            corrupt = archive.testzip()
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError) as error:
+        raise CheckpointError(f"{path}: not a readable checkpoint ({first_line(error)})") from None
+    if corrupt is not None:
+        raise CheckpointError(
+            f"{path}: corrupt checkpoint ({corrupt} does not match its CRC-32); resume from another with --load-step"
+        )
+
+
+def read_checkpoint(path: Path) -> Dict[str, Any]:
+    """A checkpoint's content, its archive verified, unpickled with weights_only=True (tensors and plain containers
+    only)."""
+    verify_archive(path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
@@ -66,6 +83,19 @@ def read_checkpoint(path: Path) -> Dict[str, Any]:
     if missing:
         raise CheckpointError(f"{path}: not a nerfstudio checkpoint (no {', '.join(missing)})")
     return state
+
+
+def check_method(state: Dict[str, Any], path: Path, method_name: Optional[str]) -> None:
+    """Refuse a checkpoint another method wrote: the run would change method midway."""
+    saved = state.get("method")
+    if saved == method_name:
+        return
+    if saved is None:
+        raise CheckpointError(
+            f"{path}: names no method (written before checkpoints named theirs), so it cannot be resumed as "
+            f"{method_name}"
+        )
+    raise CheckpointError(f"{path}: a checkpoint of {saved}, not of {method_name}; resume it with ns-train {saved}")
 
 
 def rng_states() -> Dict[str, Any]:

@@ -93,12 +93,15 @@ def random_rays(model: NerfactoModel, num_rays: int) -> RayBundle:
     )
 
 
-def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> None:
+def warm_up(
+    model: nn.Module, num_rays: int, with_gradients: bool = True, progress: Callable[[str], None] = lambda part: None
+) -> None:
     """Compile now rather than in the first training steps, so that a timed task (--seconds-per-task) counts training.
 
     Renders `num_rays` rays (the training batch: compiled code is specialised on size ranges) with gradients (a
     training step) and without (proposal rounds that skip their update, evaluation, the replay oracle); the
     parameters, their gradients, the proposal sampler's counters and the random generators are left as they were.
+    `progress` is told which part is compiling ("training pass 1 of 2", ...), for the viewer's panel.
     """
     if not isinstance(model, NerfactoModel) or not is_compiled(model):
         return
@@ -107,10 +110,13 @@ def warm_up(model: nn.Module, num_rays: int, with_gradients: bool = True) -> Non
     counters = proposal_sampler_state(model)
     devices = [model.device] if model.device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
+        passes = 2 if with_gradients else 1
         if with_gradients:
+            progress(f"training pass 1 of {passes}")
             model.train()
             model(random_rays(model, num_rays))["rgb"].sum().backward()
             model.zero_grad(set_to_none=True)
+        progress(f"rendering pass {passes} of {passes}")
         with torch.no_grad():
             model.eval()
             model(random_rays(model, num_rays))

@@ -17,6 +17,10 @@ class CheckpointError(ContinualNerfError):
     """A checkpoint that cannot be found, read or resumed from."""
 
 
+class OutputError(ContinualNerfError):
+    """A file of the run that cannot be written: no space left, a read-only folder, ..."""
+
+
 def first_line(error: BaseException) -> str:
     """The first line of an error's message, its first detail when that line only introduces a list (ends with ':'),
     or the error's type when the message is empty (a bare assert)."""

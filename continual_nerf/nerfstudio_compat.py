@@ -11,15 +11,20 @@ from __future__ import annotations
 import dataclasses
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
-from typing import Any, Callable, Dict, Iterator, List, Literal
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional
 from unittest import mock
 
+import msgspec
 import numpy as np
 import torch
 import torchmetrics.image.lpip
+import viser.transforms as vtf
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
+from nerfstudio.field_components.embedding import Embedding
+from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
@@ -81,6 +86,37 @@ def hot_modules(model: NerfactoModel) -> List[nn.Module]:
     return modules
 
 
+def appearance_codes(field: NerfactoField) -> Optional[Embedding]:
+    """The field's appearance embedding (None without one).
+
+    Depends on: `NerfactoField.embedding_appearance`, indexed by the ray samples' camera indices while training.
+    """
+    return field.embedding_appearance
+
+
+def set_appearance_codes(field: NerfactoField, codes: Embedding) -> None:
+    """Make the field look its appearance codes up in `codes` (an embedding of the same size and dimension)."""
+    field.embedding_appearance = codes
+
+
+@contextmanager
+def codes_looked_up_per_ray(field: NerfactoField) -> Iterator[None]:
+    """Outside training, let `field` give every ray its own frame's appearance code (it gives all the mean code).
+
+    Depends on: `NerfactoField.get_outputs` reading `self.training` only to choose between per-ray codes and their
+    mean (and for transient embeddings, which nerfacto never turns on); the field's submodules keep their own flags.
+    """
+    if field.embedding_appearance is None:
+        yield
+        return
+    was_training = field.training
+    field.training = True
+    try:
+        yield
+    finally:
+        field.training = was_training
+
+
 def replace_forward(module: nn.Module, forward: Callable[..., Any]) -> None:
     """Run `forward` instead of the module's own: parameters and state-dict keys stay nerfstudio's.
 
@@ -110,6 +146,24 @@ def set_resume_step(trainer: Trainer, start_step: int) -> None:
     """
     trainer._start_step = start_step
     trainer.config.max_num_iterations -= start_step
+
+
+def first_step(trainer: Trainer) -> int:
+    """The step this process's training loop starts at: 0, or the one after the checkpoint a run resumed from.
+
+    Depends on: `Trainer._start_step` (private), where `Trainer.train` starts its loop.
+    """
+    return trainer._start_step
+
+
+def leave_pause(trainer: Trainer) -> None:
+    """Let nerfstudio's loop go on to its next iteration if the viewer has paused it.
+
+    Depends on: `Trainer.train` sleeping while `training_state == "paused"` and going on once it is "training", as
+    the viewer's Resume button sets it.
+    """
+    if trainer.training_state == "paused":
+        trainer.training_state = "training"
 
 
 def init_scene_without_frustums(viewer: Viewer, train_dataset: InputDataset, train_state: str) -> None:
@@ -238,3 +292,89 @@ def process_worker(
             )  # fmt: skip
     except Exception as error:
         raise SystemExit(f"{config.method_name}: error: process {rank}: {first_line(error)}") from None
+
+
+def remove_frustum(viewer: Viewer, frame: int) -> None:
+    """Take a frustum drawn by `register_frustum` out of the scene and out of the viewer's camera handles.
+
+    Depends on: `Viewer.camera_handles` and `Viewer.original_c2w`, as `register_frustum`.
+    """
+    viewer.camera_handles.pop(frame).remove()
+    viewer.original_c2w.pop(frame)
+
+
+def set_render_defaults(viewer: Viewer, max_res: int, train_util: float) -> None:
+    """Start the viewer's "Max res" and "Train Util" sliders at other values than nerfstudio's 512 and 0.85.
+
+    Depends on: `ControlPanel._max_res` and `._train_util` (private ViewerSliders), which the render thread
+    (`RenderStateMachine._calculate_image_res`) and `Viewer.update_scene` read through `max_res` / `train_util`.
+    """
+    viewer.control_panel._max_res.value = max_res
+    viewer.control_panel._train_util.value = train_util
+
+
+def show_step(viewer: Viewer, step: int) -> None:
+    """Write `step` into nerfstudio's "Step:" status line, which nerfstudio itself updates only when it renders.
+
+    Depends on: `Viewer.update_step`, which rewrites the first line of `Viewer.stats_markdown`.
+    """
+    viewer.update_step(step)
+
+
+def disable_training_buttons(viewer: Viewer) -> None:
+    """Grey out nerfstudio's "Pause Training" / "Resume Training" once training has ended (they would do nothing).
+
+    Depends on: `Viewer.pause_train` and `Viewer.resume_train`, viser button handles.
+    """
+    viewer.pause_train.disabled = True
+    viewer.resume_train.disabled = True
+
+
+def rerender(viewer: Viewer) -> None:
+    """Render every connected browser's view again (after the model's weights changed under the viewer).
+
+    Depends on: `Viewer._trigger_rerender` (private), which nerfstudio's own controls call.
+    """
+    viewer._trigger_rerender()
+
+
+TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings")
+"""Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
+viewer's scene (`_init_viewer_state`, called at the start of `train`) and the viewer's start-up note
+(`_check_viewer_warnings`, called by `setup` right after the viewer starts)."""
+
+
+def viewer_camera_message(
+    position: np.ndarray, look_at: np.ndarray, up: np.ndarray, fov: float, aspect: float
+) -> bytes:
+    """The bytes a browser sends the viewer when its camera is at `position` looking at `look_at` (viser units), so
+    that a page without a browser can ask for renders.
+
+    Depends on: viser 0.2.7's wire format: `viser._messages.ViewerCameraMessage` (OpenCV camera, +z forward) as its
+    `as_serializable_dict()`, msgpack-encoded (client API version 0).
+    """
+    from viser import _messages
+
+    forward = (look_at - position) / np.linalg.norm(look_at - position)
+    down = -(up - np.dot(up, forward) * forward)
+    down = down / np.linalg.norm(down)
+    rotation = vtf.SO3.from_matrix(np.stack([np.cross(down, forward), down, forward], axis=1))
+    message = _messages.ViewerCameraMessage(
+        wxyz=tuple(float(v) for v in rotation.wxyz),  # type: ignore[arg-type]
+        position=tuple(float(v) for v in position),  # type: ignore[arg-type]
+        fov=fov,
+        aspect=aspect,
+        look_at=tuple(float(v) for v in look_at),  # type: ignore[arg-type]
+        up_direction=tuple(float(v) for v in up),  # type: ignore[arg-type]
+    )
+    return msgspec.msgpack.encode(message.as_serializable_dict())
+
+
+def viewer_render_rays_per_second() -> Optional[float]:
+    """The viewer's render speed, averaged over its latest renders, or None before the first one.
+
+    Depends on: `nerfstudio.utils.writer.GLOBAL_BUFFER["events"]`, where the viewer's render thread puts
+    `EventName.VIS_RAYS_PER_SEC` (and `Viewer.update_scene` reads it to space its renders).
+    """
+    event = writer.GLOBAL_BUFFER.get("events", {}).get(writer.EventName.VIS_RAYS_PER_SEC.value)
+    return None if event is None else float(event["avg"])

@@ -28,6 +28,13 @@ OrientationMethod = Literal["pca", "up", "vertical", "none"]
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplied onto an OpenCV camera-to-world matrix (looks down +z, +y down) gives OpenGL's."""
 
+PRINCIPAL_POINT_MARGIN = 0.1
+"""How far outside the image a principal point may lie, as a fraction of the image's width or height."""
+
+ASPECT_TOLERANCE = 0.01
+"""Relative difference of width/height ratios up to which images count as a resized copy of the calibrated ones
+(ScanNet's 640x480 copies of its 1296x968 colour images differ by 0.4%)."""
+
 
 @dataclass
 class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
@@ -57,6 +64,17 @@ class CaptureDataParserConfig(ValidatedConfig, DataParserConfig):
             raise ContinualConfigError(f"--max-frames must be at least 1, got {self.max_frames}")
 
 
+class CaptureOutputs(DataparserOutputs):
+    """DataparserOutputs whose `dataparser_transform` is float64 and maps the capture's own world coordinates (tens of
+    km for a drive, where float32 keeps centimetres at best) into the box; poses mapped back to the world (ns-export's
+    world frame) are computed in float64, whatever dtype they come in."""
+
+    def transform_poses_to_original_space(
+        self, poses: torch.Tensor, camera_convention: Literal["opengl", "opencv"] = "opencv"
+    ) -> torch.Tensor:
+        return super().transform_poses_to_original_space(poses.double(), camera_convention)
+
+
 @dataclass
 class CaptureFrames:
     """Frames of a capture in capture order, in metric world units."""
@@ -74,6 +92,8 @@ class CaptureFrames:
     """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2], or None for undistorted images."""
     time_group: Optional[np.ndarray] = None
     """(N,) capture instant of each image for multi-camera rigs: images of one instant stay in one task."""
+    camera_id: Optional[np.ndarray] = None
+    """(N,) which camera of a rig took each image (None: cameras told apart by their intrinsics)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -85,7 +105,7 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group")
+            for name in ("distortion", "time_group", "camera_id")
         }
         return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
 
@@ -99,6 +119,47 @@ def check_pose(matrix: np.ndarray, source: str) -> None:
         np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-3)
     ):
         raise DatasetError(f"{source}: pose is not a rigid transform (its 3x3 block is not a rotation)")
+
+
+def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: float, height: float, source: str) -> None:
+    """The one check of every parser's intrinsics: focal lengths finite and positive, image size whole and positive,
+    principal point finite and inside the image or near it. A NaN, zero or far-off value trains on wrong rays."""
+    whole = np.isfinite([width, height]).all() and width == int(width) and height == int(height)
+    if not (whole and width >= 1 and height >= 1):
+        raise DatasetError(f"{source}: image size w={width:g} h={height:g} must be whole numbers of at least 1")
+    if not (np.isfinite([fx, fy]).all() and fx > 0 and fy > 0):
+        raise DatasetError(f"{source}: focal lengths must be finite and positive, got fx={fx:g} fy={fy:g}")
+    inside = all(
+        np.isfinite(centre) and -PRINCIPAL_POINT_MARGIN * size <= centre <= (1 + PRINCIPAL_POINT_MARGIN) * size
+        for centre, size in ((cx, width), (cy, height))
+    )
+    if not inside:
+        raise DatasetError(
+            f"{source}: principal point cx={cx:g} cy={cy:g} lies outside the {width:g}x{height:g} image "
+            "(intrinsics of another image size?)"
+        )
+
+
+def fit_calibration(
+    intrinsics: Tuple[float, float, float, float],
+    calibrated_size: Tuple[int, int],
+    size: Tuple[int, int],
+    source: str,
+) -> Tuple[float, float, float, float]:
+    """fx, fy, cx, cy of a calibration made for images of `calibrated_size`, for images of `size`: scaled per axis
+    (and said in one line) when the images are a resized copy; another aspect ratio is a one-line error."""
+    if tuple(size) == tuple(calibrated_size):
+        return intrinsics
+    (width, height), (calibrated_width, calibrated_height) = size, calibrated_size
+    images = f"{source}: the images are {width}x{height} pixels, the calibration is for {calibrated_width}x{calibrated_height}"
+    if abs((width / height) / (calibrated_width / calibrated_height) - 1) > ASPECT_TOLERANCE:
+        raise DatasetError(f"{images}, another aspect ratio: not a resized copy; give these images' intrinsics")
+    scale_x, scale_y = width / calibrated_width, height / calibrated_height
+    CONSOLE.print(
+        f"{images}: intrinsics scaled by {scale_x:.4g} x {scale_y:.4g}", style="yellow", markup=False, soft_wrap=True
+    )
+    fx, fy, cx, cy = intrinsics
+    return fx * scale_x, fy * scale_y, cx * scale_x, cy * scale_y
 
 
 def image_size(path: Path) -> Tuple[int, int]:
@@ -166,19 +227,22 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         camera_type=CameraType.PERSPECTIVE,
     )
     CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order")
-    return DataparserOutputs(
+    return CaptureOutputs(
         image_filenames=frames.image_filenames,
         cameras=cameras,
         scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
-        dataparser_transform=torch.from_numpy(transform).float(),
+        dataparser_transform=torch.from_numpy(transform),
         dataparser_scale=scale,
         metadata=_metadata(frames, config),
     )
 
 
 def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
-    """What the continual datamanager reads besides cameras: the image downscale and the capture instants."""
+    """What the continual datamanager reads besides cameras: the image downscale, the capture instants and which
+    camera took each image."""
     metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
-    if frames.time_group is not None:
-        metadata["time_group"] = torch.from_numpy(np.asarray(frames.time_group)).long()
+    for key in ("time_group", "camera_id"):
+        value = getattr(frames, key)
+        if value is not None:
+            metadata[key] = torch.from_numpy(np.asarray(value)).long()
     return metadata

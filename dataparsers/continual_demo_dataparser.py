@@ -1,4 +1,5 @@
-"""`continual-demo`: a procedurally generated room with exact poses, rendered once and cached on disk."""
+"""`continual-demo`: a procedurally generated room with exact poses, rendered once and cached on disk; optionally
+with what a real capture adds (exposure changes, camera colour responses, pose errors: `demo_capture.py`)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Tuple, Type
+from typing import Callable, List, Literal, Type
 
 import numpy as np
 import torch
@@ -16,7 +17,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
-from continual_nerf.dataparsers import demo_scene, demo_street
+from continual_nerf.dataparsers import demo_capture, demo_scene, demo_street
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
 
@@ -42,15 +43,57 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """Horizontal field of view of the camera."""
     seed: int = 0
     """Seed of the object layout and of the wobble of the camera path."""
+    exposure_strength: float = 0.0
+    """Exposure and white balance change along the capture: gains within 1 +- this (0.3: +-30 %), jumping at the start
+    of each of --exposure-segments parts and drifting smoothly in between; 0: every frame exposed alike."""
+    exposure_segments: int = 10
+    """Parts of the capture, in capture order, each with its own exposure (the number of tasks: a jump at each task
+    boundary)."""
+    camera_response_strength: float = 0.0
+    """Each camera records colour with its own response: per-channel gains within 1 +- this, a gamma within 1 +- half of
+    it (the street's three cameras then disagree); 0: identical cameras."""
+    pose_noise_degrees: float = 0.0
+    """Root mean square rotation error of the poses the parser returns, smooth along the capture (the images stay
+    rendered from the true poses)."""
+    pose_noise_translation: float = 0.0
+    """Root mean square position error of the poses the parser returns, as a fraction of the trajectory's length."""
 
     def validate(self) -> None:
         super().validate()
-        for name in ("num_frames", "width", "height"):
+        for name in ("num_frames", "width", "height", "exposure_segments"):
             value = getattr(self, name)
             if value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be at least 1, got {value}")
         if not 0 < self.fov_degrees < 180:
             raise ContinualConfigError(f"continual-demo --fov-degrees must be in (0, 180), got {self.fov_degrees}")
+        for name in ("exposure_strength", "camera_response_strength"):
+            value = getattr(self, name)
+            if not 0 <= value < 1:
+                raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be in [0, 1), got {value}")
+        for name in ("pose_noise_degrees", "pose_noise_translation"):
+            value = getattr(self, name)
+            if value < 0:
+                raise ContinualConfigError(
+                    f"continual-demo --{name.replace('_', '-')} must not be negative, got {value}"
+                )
+
+    @property
+    def changes_colour(self) -> bool:
+        """Whether the images differ from the exact renders (exposure or camera responses)."""
+        return self.exposure_strength > 0 or self.camera_response_strength > 0
+
+
+@dataclass(frozen=True)
+class DemoCapture:
+    """The generated scene and its images' exact poses, capture instants and cameras, in capture order."""
+
+    scene: demo_scene.Scene
+    poses: np.ndarray
+    """(N, 3, 4) camera-to-world matrices, OpenGL convention, metres."""
+    instants: np.ndarray
+    """(N,) capture instant of each image (the street's three cameras share one)."""
+    cameras: np.ndarray
+    """(N,) camera of each image: 0 in the room; 0, 1, 2 (front, front-left, front-right) in the street."""
 
 
 class ContinualDemoDataParser(DataParser):
@@ -65,44 +108,92 @@ class ContinualDemoDataParser(DataParser):
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
 
-    def _scene_and_poses(self) -> Tuple[demo_scene.Scene, np.ndarray, Optional[np.ndarray]]:
-        """The scene, the camera-to-world matrices of its images in capture order, and their capture instants
-        (None when there is one image per instant)."""
+    def capture(self) -> DemoCapture:
+        """The scene and its images' exact poses, instants and cameras."""
         rng = np.random.default_rng(self.config.seed)
         if self.config.scene == "street":
             scene = demo_street.street(rng)
             poses, instants = demo_street.rig_path(self.config.num_frames, rng)
-            return scene, poses, instants
+            cameras = np.tile(np.arange(len(demo_street.CAMERA_YAWS)), self.config.num_frames)
+            return DemoCapture(scene, poses, instants, cameras)
         scene = demo_scene.room(rng)
-        return scene, demo_scene.camera_path(self.config.num_frames, rng), None
+        frames = np.arange(self.config.num_frames)
+        return DemoCapture(scene, demo_scene.camera_path(self.config.num_frames, rng), frames, np.zeros_like(frames))
 
-    def _render_scene(self, folder: Path, poses: np.ndarray, scene: demo_scene.Scene) -> None:
-        """Render every frame into a temporary folder, then rename it into place."""
+    def _render_scene(self, folder: Path, capture: DemoCapture) -> None:
+        """Render every frame into `folder` (and its transforms.json, exact poses)."""
         c = self.config
-        partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
-        shutil.rmtree(partial, ignore_errors=True)
-        (partial / "images").mkdir(parents=True)
+        (folder / "images").mkdir(parents=True)
         focal = self._focal()
         frames = []
-        for i, c2w in enumerate(poses):
-            image = demo_scene.render_view(c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, scene)
-            Image.fromarray(image).save(partial / "images" / f"frame_{i:05d}.png")
+        for i, c2w in enumerate(capture.poses):
+            image = demo_scene.render_view(
+                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene
+            )
+            Image.fromarray(image).save(folder / "images" / f"frame_{i:05d}.png")
             frames.append(
                 {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()}
             )
         transforms = {"fl_x": focal, "fl_y": focal, "cx": c.width / 2, "cy": c.height / 2, "w": c.width, "h": c.height}
-        (partial / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}, indent=1))
-        if folder.exists():
-            shutil.rmtree(partial)
-        else:
-            os.replace(partial, folder)
+        (folder / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}, indent=1))
+
+    def _captured_folder(self, scene_folder: Path) -> Path:
+        c = self.config
+        exposure = f"exposure{c.exposure_strength:g}x{c.exposure_segments}" if c.exposure_strength > 0 else ""
+        response = f"response{c.camera_response_strength:g}" if c.camera_response_strength > 0 else ""
+        return scene_folder / "_".join(filter(None, ("captured", exposure, response)))
+
+    def frame_gains(self, capture: DemoCapture) -> np.ndarray:
+        """(N, 3) exposure and white-balance gain of every image (ones with --exposure-strength 0)."""
+        c = self.config
+        if c.exposure_strength == 0:
+            return np.ones((len(capture.poses), 3))
+        rng = demo_capture.effect_rng(c.seed, demo_capture.EXPOSURE_STREAM)
+        gains = demo_capture.exposure_gains(
+            int(capture.instants.max()) + 1, c.exposure_segments, c.exposure_strength, rng
+        )
+        return gains[capture.instants]
+
+    def camera_responses(self, capture: DemoCapture) -> List[demo_capture.CameraResponse]:
+        """Every camera's colour response (neutral with --camera-response-strength 0)."""
+        c = self.config
+        num_cameras = int(capture.cameras.max()) + 1
+        if c.camera_response_strength == 0:
+            return [demo_capture.NEUTRAL] * num_cameras
+        rng = demo_capture.effect_rng(c.seed, demo_capture.RESPONSE_STREAM)
+        return demo_capture.camera_responses(num_cameras, c.camera_response_strength, rng)
+
+    def _write_captured_images(self, scene_folder: Path, folder: Path, capture: DemoCapture) -> None:
+        """The exact renders as the capture's cameras record them, at each frame's exposure."""
+        folder.mkdir(parents=True)
+        gains, responses = self.frame_gains(capture), self.camera_responses(capture)
+        for i, camera in enumerate(capture.cameras):
+            exact = np.asarray(Image.open(scene_folder / "images" / f"frame_{i:05d}.png"))
+            image = demo_capture.captured(exact, gains[i], responses[camera])
+            Image.fromarray(image).save(folder / f"frame_{i:05d}.png")
+
+    def returned_poses(self, capture: DemoCapture) -> np.ndarray:
+        """The poses the parser returns: the exact ones, with --pose-noise-* errors when set."""
+        c = self.config
+        if c.pose_noise_degrees == 0 and c.pose_noise_translation == 0:
+            return capture.poses
+        rng = demo_capture.effect_rng(c.seed, demo_capture.POSE_STREAM)
+        return demo_capture.noisy_poses(
+            capture.poses, capture.instants, c.pose_noise_degrees, c.pose_noise_translation, rng
+        )
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         c = self.config
-        scene, poses, instants = self._scene_and_poses()
+        capture = self.capture()
+        scene, poses = capture.scene, self.returned_poses(capture)
         folder = self._scene_folder()
         if not (folder / "transforms.json").exists():
-            self._render_scene(folder, poses, scene)
+            write_folder(folder, lambda partial: self._render_scene(partial, capture))
+        images = folder / "images"
+        if c.changes_colour:
+            images = self._captured_folder(folder)
+            if not images.exists():
+                write_folder(images, lambda partial: self._write_captured_images(folder, partial, capture))
         centre = (scene.lo + scene.hi) / 2
         scale = 2.0 / float((scene.hi - scene.lo).max())  # the scene's longest side spans nerfstudio's [-1, 1] box
         scaled = poses.copy()
@@ -120,11 +211,23 @@ class ContinualDemoDataParser(DataParser):
         )
         transform = torch.eye(4)[:3]
         transform[:, 3] = torch.from_numpy(-centre).float()
+        rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene == "street" else {}
         return DataparserOutputs(
-            image_filenames=[folder / "images" / f"frame_{i:05d}.png" for i in range(len(poses))],
+            image_filenames=[images / f"frame_{i:05d}.png" for i in range(len(poses))],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
             dataparser_scale=scale,
-            metadata={} if instants is None else {"time_group": torch.from_numpy(instants).long()},
+            metadata={key: torch.from_numpy(value).long() for key, value in rig.items()},
         )
+
+
+def write_folder(folder: Path, fill: Callable[[Path], None]) -> None:
+    """`fill` a temporary folder beside `folder`, then rename it into place (another process may have been first)."""
+    partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
+    shutil.rmtree(partial, ignore_errors=True)
+    fill(partial)
+    if folder.exists():
+        shutil.rmtree(partial)
+    else:
+        os.replace(partial, folder)

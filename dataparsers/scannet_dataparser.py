@@ -11,7 +11,7 @@ import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, List, Optional, Sequence, Type
+from typing import BinaryIO, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
@@ -23,11 +23,13 @@ from continual_nerf.dataparsers.capture import (
     CaptureDataParserConfig,
     CaptureFrames,
     capture_outputs,
+    check_intrinsics,
     check_pose,
+    fit_calibration,
     image_size,
     select_frames,
 )
-from continual_nerf.errors import DatasetError
+from continual_nerf.errors import ContinualConfigError, DatasetError
 
 SENS_VERSION = 4
 SENS_CALIBRATION = struct.Struct("<64f2i4IfQ")
@@ -47,6 +49,16 @@ class ContinualScanNetDataParserConfig(CaptureDataParserConfig):
     """Exported scene folder (color/, pose/, intrinsic/), a raw `<scene>.sens` file, or a folder holding one."""
     sens_frames_cache: Optional[Path] = None
     """Folder the colour JPEGs of a .sens file are extracted to (default: `<scene>_sens_frames/` beside it)."""
+    intrinsic_size: Tuple[int, int] = (1296, 968)
+    """Width and height of the colour images an exported folder's intrinsic_color.txt is for (ScanNet's colour camera;
+    resized copies get scaled intrinsics). A .sens file's header holds its own."""
+
+    def validate(self) -> None:
+        super().validate()
+        if min(self.intrinsic_size) < 1:
+            raise ContinualConfigError(
+                f"--intrinsic-size must be a width and height of at least 1, got {self.intrinsic_size}"
+            )
 
 
 @dataclass
@@ -108,44 +120,48 @@ def read_matrix(path: Path) -> np.ndarray:
     return matrix
 
 
-def check_intrinsics(intrinsic: np.ndarray, source: str) -> None:
-    """fx, fy, cx, cy of a 4x4 intrinsic matrix must be finite and positive."""
-    focal_and_centre = intrinsic[[0, 1, 0, 1], [0, 1, 2, 2]]
-    if not (np.isfinite(focal_and_centre).all() and (focal_and_centre > 0).all()):
-        raise DatasetError(f"{source}: intrinsics fx, fy, cx, cy must be positive, got {focal_and_centre.tolist()}")
+def pinhole(intrinsic: np.ndarray) -> Tuple[float, float, float, float]:
+    """fx, fy, cx, cy of a 4x4 intrinsic matrix."""
+    return float(intrinsic[0, 0]), float(intrinsic[1, 1]), float(intrinsic[0, 2]), float(intrinsic[1, 2])
 
 
 def build_frames(
-    image_filenames: List[Path], poses_opencv: List[np.ndarray], intrinsic: np.ndarray, width: int, height: int
+    image_filenames: List[Path],
+    poses_opencv: List[np.ndarray],
+    intrinsics: Tuple[float, float, float, float],
+    size: Tuple[int, int],
+    source: str,
 ) -> CaptureFrames:
-    """CaptureFrames of one camera with shared intrinsics; poses converted to OpenGL."""
+    """CaptureFrames of one camera with shared, checked intrinsics; poses converted to OpenGL."""
+    check_intrinsics(*intrinsics, *size, source)
     count = len(image_filenames)
     camera_to_worlds = np.stack(poses_opencv) @ OPENCV_TO_OPENGL
 
     def repeat(value: float) -> np.ndarray:
         return np.full(count, value, dtype=np.float64)
 
+    fx, fy, cx, cy = intrinsics
     return CaptureFrames(
         image_filenames=image_filenames,
         camera_to_worlds=camera_to_worlds,
-        fx=repeat(intrinsic[0, 0]),
-        fy=repeat(intrinsic[1, 1]),
-        cx=repeat(intrinsic[0, 2]),
-        cy=repeat(intrinsic[1, 2]),
-        width=repeat(width).astype(np.int64),
-        height=repeat(height).astype(np.int64),
+        fx=repeat(fx),
+        fy=repeat(fy),
+        cx=repeat(cx),
+        cy=repeat(cy),
+        width=repeat(size[0]).astype(np.int64),
+        height=repeat(size[1]).astype(np.int64),
     )
 
 
-def read_exported_folder(folder: Path) -> CaptureFrames:
-    """color/<i>.jpg with pose/<i>.txt in numeric order of i; frames with a -inf pose are skipped."""
+def read_exported_folder(folder: Path, intrinsic_size: Tuple[int, int]) -> CaptureFrames:
+    """color/<i>.jpg with pose/<i>.txt in numeric order of i; frames with a -inf pose are skipped; intrinsics for
+    images of `intrinsic_size`, scaled to the images' size."""
     color_dir, pose_dir = folder / "color", folder / "pose"
     for required in (color_dir, pose_dir):
         if not required.is_dir():
             raise DatasetError(f"{required}: missing folder (an exported ScanNet scene has color/, pose/, intrinsic/)")
     intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
     intrinsic = read_matrix(intrinsic_file)
-    check_intrinsics(intrinsic, str(intrinsic_file))
     # SensReader writes 0.jpg, 1.jpg, ... without padding: a string sort would put 10 before 2
     images = sorted((p for p in color_dir.glob("*.jpg") if p.stem.isdigit()), key=lambda p: int(p.stem))
     if not images:
@@ -163,9 +179,10 @@ def read_exported_folder(folder: Path) -> CaptureFrames:
     warn_lost_frames(pose_dir, lost)
     if not kept:
         raise DatasetError(f"{pose_dir}: every frame's pose is -inf (tracking lost)")
-    width, height = image_size(kept[0])
+    size = image_size(kept[0])
     CONSOLE.log(f"{folder}: exported ScanNet scene, {len(kept)} frames with a pose", markup=False)
-    return build_frames(kept, poses, intrinsic, width, height)
+    intrinsics = fit_calibration(pinhole(intrinsic), intrinsic_size, size, str(intrinsic_file))
+    return build_frames(kept, poses, intrinsics, size, str(intrinsic_file))
 
 
 def read_exact(sens: BinaryIO, size: int, path: Path, what: str) -> bytes:
@@ -203,7 +220,6 @@ def read_sens_index(path: Path) -> SensIndex:
             raise DatasetError(
                 f"{path}: colour frames are {kind}-compressed; only jpeg colour .sens files are supported"
             )
-        check_intrinsics(intrinsic_color, f"{path} header")
         frames = []
         for index in range(num_frames):
             values = SENS_FRAME.unpack(read_exact(sens, SENS_FRAME.size, path, f"frame {index} of {num_frames}"))
@@ -288,7 +304,11 @@ class ContinualScanNetDataParser(DataParser):
             check_pose(frame.camera_to_world, f"{path} frame {frame.index}")
         by_file = {cached_jpeg(cache, frame): frame for frame in usable}
         frames = build_frames(
-            list(by_file), [frame.camera_to_world for frame in usable], index.intrinsic_color, index.width, index.height
+            list(by_file),
+            [frame.camera_to_world for frame in usable],
+            pinhole(index.intrinsic_color),
+            (index.width, index.height),
+            f"{path} header",
         )
         CONSOLE.log(f"{path}: ScanNet .sens file, {len(usable)} frames with a pose", markup=False)
         selected = select_frames(frames, self.config)
@@ -297,5 +317,8 @@ class ContinualScanNetDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         source = find_source(self.config.data)
-        frames = self._read_sens(source) if source.is_file() else read_exported_folder(source)
+        if source.is_file():
+            frames = self._read_sens(source)
+        else:
+            frames = read_exported_folder(source, self.config.intrinsic_size)
         return capture_outputs(frames, self.config)

@@ -12,7 +12,7 @@ from typing import Any, List, Mapping, Tuple
 import numpy as np
 from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, CameraType
 
-from continual_nerf.dataparsers.capture import check_pose
+from continual_nerf.dataparsers.capture import check_intrinsics, check_pose
 from continual_nerf.errors import DatasetError
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -26,7 +26,7 @@ PERSPECTIVE_MODELS = tuple(name for name, kind in CAMERA_MODEL_TO_TYPE.items() i
 
 
 def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray, np.ndarray]:
-    """Intrinsics and distortion from transforms.json-style keys; only perspective camera models are accepted."""
+    """Checked intrinsics and distortion from transforms.json-style keys; only perspective camera models are accepted."""
     model = values.get("camera_model", "OPENCV")
     if model not in PERSPECTIVE_MODELS:
         supported = ", ".join(PERSPECTIVE_MODELS)
@@ -39,10 +39,13 @@ def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray
         distortion = np.array(
             values.get("distortion_params") or [values.get(key, 0.0) for key in DISTORTION_KEYS], dtype=np.float64
         )
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise DatasetError(f"{source}: intrinsics and distortion must be numbers") from None
     if distortion.shape != (len(DISTORTION_KEYS),):
         raise DatasetError(f"{source}: distortion_params must hold 6 numbers {list(DISTORTION_KEYS)}")
+    if not np.isfinite(distortion).all():
+        raise DatasetError(f"{source}: distortion parameters must be finite numbers")
+    check_intrinsics(*intrinsics, source=source)
     return intrinsics, distortion
 
 

@@ -20,7 +20,9 @@ from continual_nerf.dataparsers.capture import (
     CaptureDataParserConfig,
     CaptureFrames,
     capture_outputs,
+    check_intrinsics,
     check_pose,
+    fit_calibration,
     image_size,
 )
 from continual_nerf.errors import ContinualConfigError, DatasetError
@@ -44,6 +46,8 @@ SENSORS = {
     "freiburg3": SensorCalibration(535.4, 539.2, 320.1, 247.6, (0.0, 0.0, 0.0, 0.0, 0.0)),
 }
 ROS_DEFAULT = SensorCalibration(525.0, 525.0, 319.5, 239.5, (0.0, 0.0, 0.0, 0.0, 0.0))
+CALIBRATED_SIZE = (640, 480)
+"""Width and height of the images every sensor calibration above is for (TUM's own images)."""
 
 
 @dataclass
@@ -59,13 +63,13 @@ class ContinualTumDataParserConfig(CaptureDataParserConfig):
     max_time_difference: float = 0.02
     """Seconds from an image to its nearest ground-truth pose beyond which the image is dropped."""
     fx: Optional[float] = None
-    """Focal length in x in pixels, instead of the sensor's."""
+    """Focal length in x in pixels of the images as they are, instead of the sensor's."""
     fy: Optional[float] = None
-    """Focal length in y in pixels, instead of the sensor's."""
+    """Focal length in y in pixels of the images as they are, instead of the sensor's."""
     cx: Optional[float] = None
-    """Principal point x in pixels, instead of the sensor's."""
+    """Principal point x in pixels of the images as they are, instead of the sensor's."""
     cy: Optional[float] = None
-    """Principal point y in pixels, instead of the sensor's."""
+    """Principal point y in pixels of the images as they are, instead of the sensor's."""
     distortion: Optional[Tuple[float, float, float, float, float]] = None
     """Distortion k1 k2 p1 p2 k3 (OpenCV order, as TUM lists it) instead of the sensor's; zeros if undistorted."""
 
@@ -207,8 +211,9 @@ class ContinualTumDataParser(DataParser):
 
     config: ContinualTumDataParserConfig
 
-    def _calibration(self) -> SensorCalibration:
-        """The sensor's calibration from the folder name, with the user's overrides applied."""
+    def _calibration(self, size: Tuple[int, int]) -> SensorCalibration:
+        """The sensor's calibration from the folder name, scaled to images of `size` (TUM's are 640x480), with the
+        user's overrides (in pixels of these images) applied."""
         c = self.config
         match = re.search(r"freiburg[123]", c.data.resolve().name)
         sensor = SENSORS.get(match.group(0)) if match else None
@@ -223,6 +228,10 @@ class ContinualTumDataParser(DataParser):
                     markup=False,
                     soft_wrap=True,
                 )
+        pinhole = (sensor.fx, sensor.fy, sensor.cx, sensor.cy)
+        if any(overrides[name] is None for name in ("fx", "fy", "cx", "cy")):
+            pinhole = fit_calibration(pinhole, CALIBRATED_SIZE, size, f"{c.data} (sensor calibration)")
+        sensor = SensorCalibration(*pinhole, sensor.distortion)
         return SensorCalibration(
             **{name: getattr(sensor, name) if value is None else value for name, value in overrides.items()}
         )
@@ -277,18 +286,20 @@ class ContinualTumDataParser(DataParser):
 
     def _frames(self, image_files: List[Path], poses_opencv: np.ndarray) -> CaptureFrames:
         """CaptureFrames with the sensor's (or the user's) calibration; size from the first image's header."""
-        calibration = self._calibration()
         width, height = image_size(image_files[0])
+        calibration = self._calibration((width, height))
+        fx, fy, cx, cy = calibration.fx, calibration.fy, calibration.cx, calibration.cy
+        check_intrinsics(fx, fy, cx, cy, width, height, f"{self.config.data} (intrinsics)")
         count = len(image_files)
         k1, k2, p1, p2, k3 = calibration.distortion
         distorted = any(calibration.distortion)
         return CaptureFrames(
             image_filenames=image_files,
             camera_to_worlds=poses_opencv @ OPENCV_TO_OPENGL,
-            fx=np.full(count, calibration.fx),
-            fy=np.full(count, calibration.fy),
-            cx=np.full(count, calibration.cx),
-            cy=np.full(count, calibration.cy),
+            fx=np.full(count, fx),
+            fy=np.full(count, fy),
+            cx=np.full(count, cx),
+            cy=np.full(count, cy),
             width=np.full(count, width, dtype=np.int64),
             height=np.full(count, height, dtype=np.int64),
             # nerfstudio orders distortion as [k1, k2, k3, k4, p1, p2]

@@ -35,8 +35,9 @@ class WaymoDataParserConfig(CaptureDataParserConfig):
     """A v2 root (camera_image/, camera_calibration/, vehicle_pose/ of <segment>.parquet) or a v1 .tfrecord file."""
     segment: Optional[str] = None
     """Segment (context name) to read from a v2 root; None reads the only segment there."""
-    cameras: Tuple[CameraName, ...] = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
-    """Cameras to use; at each timestamp their images follow one another in this order."""
+    cameras: Optional[Tuple[CameraName, ...]] = None
+    """Cameras to use; at each timestamp their images follow one another in this order. None: every camera the
+    segment is calibrated for, in Waymo's order (logged)."""
     image_cache: Optional[Path] = None
     """Folder the JPEGs inside the data are written to once and reused from; None: <data>-images beside the data."""
     frame_stride: int = 1
@@ -46,6 +47,8 @@ class WaymoDataParserConfig(CaptureDataParserConfig):
 
     def validate(self) -> None:
         super().validate()
+        if self.cameras is None:
+            return
         if not self.cameras:
             raise ContinualConfigError("--cameras must name at least one camera")
         unknown = [name for name in self.cameras if name not in CAMERA_IDS]
@@ -68,16 +71,17 @@ class WaymoSegment:
     image_filenames: List[Path]
 
 
-def select_images(index: ImageIndex, config: WaymoDataParserConfig, source: Path) -> np.ndarray:
-    """Positions in `index` of the images to use: stride and cap act on timestamps, every camera of one is kept."""
+def select_images(index: ImageIndex, cameras: List[str], config: WaymoDataParserConfig, source: Path) -> np.ndarray:
+    """Positions in `index` of the images to use: stride and cap act on timestamps, every camera of one is kept, in
+    the order of `cameras`."""
     kept = set(np.unique(index.timestamps)[:: config.frame_stride][: config.max_frames].tolist())
-    rank = {name: i for i, name in enumerate(config.cameras)}
+    rank = {name: i for i, name in enumerate(cameras)}
     chosen = sorted(
         (i for i, timestamp in enumerate(index.timestamps) if timestamp in kept),
         key=lambda i: (index.timestamps[i], rank[index.cameras[i]]),
     )
     if not chosen:
-        raise DatasetError(f"{source}: no images of the cameras {', '.join(config.cameras)}")
+        raise DatasetError(f"{source}: no images of the cameras {', '.join(cameras)}")
     pairs = [(index.timestamps[i], index.cameras[i]) for i in chosen]
     for previous, current in zip(pairs, pairs[1:]):
         if previous == current:
@@ -130,7 +134,7 @@ def read_segment(config: WaymoDataParserConfig) -> WaymoSegment:
         raise DatasetError(f"{data}: neither a .tfrecord file (Waymo v1) nor a Waymo v2 root folder")
     else:
         raise DatasetError(f"{data}: no such file or folder")
-    chosen = select_images(index.images, config, index.images_file)
+    chosen = select_images(index.images, index.cameras, config, index.images_file)
     segment = segment_of(index, chosen, cache_folder(config, index.name))
     missing = missing_images(segment)
     if missing:
@@ -139,16 +143,14 @@ def read_segment(config: WaymoDataParserConfig) -> WaymoSegment:
 
 
 def capture_frames(segment: WaymoSegment) -> CaptureFrames:
-    """Camera-to-world in OpenGL convention, recentred on the first image's vehicle position in float64."""
-    vehicle_to_world = segment.vehicle_to_world.copy()
-    vehicle_to_world[:, :3, 3] -= segment.vehicle_to_world[0, :3, 3]
+    """Camera-to-world in OpenGL convention and Waymo's world coordinates (float64: the box fitting recentres them)."""
     calibrations = [segment.calibrations[name] for name in segment.cameras]
     camera_to_vehicle = np.stack([calibration.camera_to_vehicle for calibration in calibrations])
     intrinsic = np.stack([calibration.intrinsic for calibration in calibrations])
     f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 = intrinsic.T
     return CaptureFrames(
         image_filenames=segment.image_filenames,
-        camera_to_worlds=vehicle_to_world @ camera_to_vehicle @ WAYMO_CAMERA_TO_OPENGL,
+        camera_to_worlds=segment.vehicle_to_world @ camera_to_vehicle @ WAYMO_CAMERA_TO_OPENGL,
         fx=f_u,
         fy=f_v,
         cx=c_u,
@@ -157,6 +159,7 @@ def capture_frames(segment: WaymoSegment) -> CaptureFrames:
         height=np.array([calibration.height for calibration in calibrations]),
         distortion=np.stack([k1, k2, k3, np.zeros_like(k1), p1, p2], axis=1),
         time_group=segment.timestamps,
+        camera_id=np.array([CAMERA_IDS[name] for name in segment.cameras]),
     )
 
 

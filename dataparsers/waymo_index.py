@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Dict, List, Literal, Optional, Sequence, Union
 
 import numpy as np
+from nerfstudio.utils.rich_utils import CONSOLE
 
-from continual_nerf.dataparsers.capture import check_pose
+from continual_nerf.dataparsers.capture import check_intrinsics, check_pose
 from continual_nerf.errors import DatasetError
 
 CameraName = Literal["FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT"]
@@ -56,6 +57,8 @@ class SegmentIndex:
     images_file: Path
     """The file that holds the JPEGs; errors about the segment's images name it."""
     calibrations: Dict[str, Calibration]
+    cameras: List[str]
+    """The cameras used, in the order their images follow one another at each timestamp."""
     images: ImageIndex
 
 
@@ -68,7 +71,18 @@ def transform_matrix(values: Optional[Union[Sequence[float], np.ndarray]], sourc
     return matrix
 
 
-def check_calibrated(calibrations: Dict[str, Calibration], cameras: Sequence[str], source: Path) -> None:
+def choose_cameras(calibrations: Dict[str, Calibration], cameras: Optional[Sequence[str]], source: Path) -> List[str]:
+    """The chosen cameras (None: every camera the segment is calibrated for, said in one line), each with a
+    calibration whose intrinsics are sound."""
+    if cameras is None:
+        cameras = [name for name in CAMERA_IDS if name in calibrations]
+        used = f"{source}: using the segment's cameras {', '.join(cameras)} (--cameras chooses)"
+        CONSOLE.print(used, markup=False, soft_wrap=True)
     uncalibrated = [name for name in cameras if name not in calibrations]
     if uncalibrated:
         raise DatasetError(f"{source}: no calibration for camera {uncalibrated[0]}")
+    for name in cameras:
+        calibration = calibrations[name]
+        fx, fy, cx, cy = calibration.intrinsic[:4]
+        check_intrinsics(fx, fy, cx, cy, calibration.width, calibration.height, f"{source} ({name} calibration)")
+    return list(cameras)

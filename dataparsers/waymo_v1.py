@@ -7,7 +7,7 @@ records: poses and calibrations first, then the JPEGs of only the chosen images 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from continual_nerf.dataparsers.waymo_index import (
     Calibration,
     ImageIndex,
     SegmentIndex,
-    check_calibrated,
+    choose_cameras,
     transform_matrix,
 )
 from continual_nerf.errors import DatasetError
@@ -29,12 +29,12 @@ def read_transform(transform: Message) -> np.ndarray:
     return transform_matrix(transform.doubles(1), transform.source)
 
 
-def read_calibrations(context: Message, cameras: Sequence[str], path: Path) -> Dict[str, Calibration]:
+def read_calibrations(context: Message) -> Dict[str, Calibration]:
     """`Context.camera_calibrations` (2): name 1, intrinsic 2, extrinsic 3, width 4, height 5."""
     calibrations = {}
     for calibration in context.messages(2):
         name = CAMERA_NAMES.get(calibration.integer(1))
-        if name not in cameras:
+        if name is None:
             continue
         intrinsic = calibration.doubles(2)
         if len(intrinsic) != 9:
@@ -45,7 +45,6 @@ def read_calibrations(context: Message, cameras: Sequence[str], path: Path) -> D
             width=calibration.integer(4),
             height=calibration.integer(5),
         )
-    check_calibrated(calibrations, cameras, path)
     return calibrations
 
 
@@ -64,21 +63,23 @@ def index_frame(frame: Message, cameras: Sequence[str], index: ImageIndex) -> No
         index.add(timestamp, camera, read_transform(image.message(3) if image.has(3) else frame.message(3)))
 
 
-def index_segment(path: Path, cameras: Sequence[str]) -> SegmentIndex:
-    """Calibrations and the chosen cameras' images of every record of a .tfrecord file."""
+def index_segment(path: Path, cameras: Optional[Sequence[str]]) -> SegmentIndex:
+    """Calibrations and the chosen cameras' images (None: every calibrated camera's) of a .tfrecord file's records."""
     index = ImageIndex()
     calibrations: Optional[Dict[str, Calibration]] = None
+    chosen: List[str] = []
     name = path.stem
     for number, record in enumerate(read_records(path)):
         frame = Message(record, f"{path} record {number}")
         if calibrations is None:  # every frame repeats the segment's context
             context = frame.message(1)
             name = bytes(context.blob(1)).decode() or name
-            calibrations = read_calibrations(context, cameras, path)
-        index_frame(frame, cameras, index)
+            calibrations = read_calibrations(context)
+            chosen = choose_cameras(calibrations, cameras, path)
+        index_frame(frame, chosen, index)
     if calibrations is None:
         raise DatasetError(f"{path}: holds no records")
-    return SegmentIndex(name, path, calibrations, index)
+    return SegmentIndex(name, path, calibrations, chosen, index)
 
 
 def cache_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:

@@ -19,7 +19,7 @@ from continual_nerf.dataparsers.waymo_index import (
     Calibration,
     ImageIndex,
     SegmentIndex,
-    check_calibrated,
+    choose_cameras,
     transform_matrix,
 )
 from continual_nerf.errors import DatasetError
@@ -77,19 +77,18 @@ def read_vehicle_poses(path: Path) -> Tuple[np.ndarray, np.ndarray]:
     return timestamps[order], np.stack(poses)[order]
 
 
-def read_calibrations(path: Path, cameras: Sequence[str]) -> Dict[str, Calibration]:
+def read_calibrations(path: Path) -> Dict[str, Calibration]:
     columns = [CAMERA, *INTRINSIC, EXTRINSIC, WIDTH, HEIGHT]
     calibrations = {}
     for row in read_columns(open_parquet(path, columns), path, columns).to_pylist():
         name = CAMERA_NAMES.get(row[CAMERA])
-        if name in cameras:
+        if name is not None:
             calibrations[name] = Calibration(
                 intrinsic=np.array([row[column] for column in INTRINSIC], dtype=np.float64),
                 camera_to_vehicle=transform_matrix(row[EXTRINSIC], f"{path} ({name} extrinsic)"),
                 width=int(row[WIDTH]),
                 height=int(row[HEIGHT]),
             )
-    check_calibrated(calibrations, cameras, path)
     return calibrations
 
 
@@ -132,12 +131,14 @@ def index_images(path: Path, cameras: Sequence[str], vehicle_pose_path: Path) ->
     return index
 
 
-def index_segment(root: Path, segment: Optional[str], cameras: Sequence[str]) -> SegmentIndex:
-    """Calibrations and the chosen cameras' images of a segment under a v2 root (None: its only segment)."""
+def index_segment(root: Path, segment: Optional[str], cameras: Optional[Sequence[str]]) -> SegmentIndex:
+    """Calibrations and the chosen cameras' images (None: every calibrated camera's) of a segment under a v2 root
+    (segment None: its only segment)."""
     name = segment_name(root, segment)
     image_path, calibration_path, vehicle_pose_path = (root / component / f"{name}.parquet" for component in COMPONENTS)
-    calibrations = read_calibrations(calibration_path, cameras)
-    return SegmentIndex(name, image_path, calibrations, index_images(image_path, cameras, vehicle_pose_path))
+    calibrations = read_calibrations(calibration_path)
+    chosen = choose_cameras(calibrations, cameras, calibration_path)
+    return SegmentIndex(name, image_path, calibrations, chosen, index_images(image_path, chosen, vehicle_pose_path))
 
 
 def cache_images(path: Path, missing: Dict[Tuple[int, str], Path]) -> None:

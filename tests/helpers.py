@@ -6,6 +6,7 @@ ScanNet exported folder and .sens, TUM RGB-D, Waymo v1 TFRecord and v2 Parquet),
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import io
 import json
@@ -15,10 +16,11 @@ import struct
 import subprocess
 import sys
 import time
+import zipfile
 import zlib
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, BinaryIO, Dict, List, Optional, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -34,13 +36,17 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from PIL import Image
 
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.dataparsers import waymo_v2
 from continual_nerf.dataparsers.capture import OPENCV_TO_OPENGL
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
 from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.nerfstudio_compat import seed_like_ns_train
 from continual_nerf.recipes import quiet_config, train_like_ns_train
+from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
+from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
 DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
 """The demo scenes the tests render, kept between test runs (rendering is the slow part of a tiny run)."""
@@ -55,23 +61,26 @@ def tiny_config(
     num_tasks: int = 2,
     iterations_per_task: int = 3,
     rays_per_batch: int = 256,
-    replay: bool = True,
+    replay: Optional[bool] = None,
     small_model: bool = True,
     compile: bool = False,
+    method: ContinualTrainerConfig = CONTINUAL_NGP,
 ) -> ContinualTrainerConfig:
-    """continual-ngp on CPU with tensorboard only (no viewer) and, by default, a small hash grid, eager (compiling
-    costs more than the few steps of a test save; tests/test_performance.py checks compiled = eager)."""
+    """`method` (continual-ngp by default) on CPU with tensorboard only (no viewer) and, by default, a small model,
+    eager (compiling costs more than the few steps of a test save; tests/test_performance.py checks compiled = eager);
+    `replay` None keeps the method's own."""
     config = quiet_config(
-        CONTINUAL_NGP,
+        method,
         output_dir,
         small=small_model,
         dataparser=dataparser,
         num_tasks=num_tasks,
         iterations_per_task=iterations_per_task,
         train_num_rays_per_batch=rays_per_batch,
-        replay=replay,
+        replay=method.pipeline.datamanager.replay if replay is None else replay,
     )
-    config.pipeline.model = dataclasses.replace(config.pipeline.model, compile=compile)
+    if isinstance(config.pipeline.model, ContinualNGPModelConfig):  # the NeRF baselines do not compile
+        config.pipeline.model = dataclasses.replace(config.pipeline.model, compile=compile)
     return config
 
 
@@ -79,6 +88,43 @@ def demo_parser(
     num_frames: int = 16, width: int = 24, height: int = 18, seed: int = 0
 ) -> ContinualDemoDataParserConfig:
     return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=width, height=height, seed=seed)
+
+
+def stream_config(
+    run_dir: Path, capture: Path, idle: str, frames_per_task: int, iterations_per_task: int
+) -> ContinualTrainerConfig:
+    """continual-ngp-stream reading `capture` (polled every 0.05 s, poses as written), with tiny_config's settings and
+    an even smaller model."""
+    parser = StreamDataParserConfig(
+        data=capture, frames_per_task=frames_per_task, poll_seconds=0.05, normalization="none", unreadable_timeout=0
+    )
+    config = tiny_config(run_dir, parser, iterations_per_task=iterations_per_task, rays_per_batch=64)
+    config.pipeline.datamanager = StreamingDataManagerConfig(
+        dataparser=parser,
+        iterations_per_task=iterations_per_task,
+        train_num_rays_per_batch=64,
+        test_interval=4,
+        idle=idle,  # type: ignore[arg-type]
+    )
+    config.pipeline.model = dataclasses.replace(
+        config.pipeline.model,
+        num_levels=4,
+        log2_hashmap_size=10,
+        max_res=32,
+        num_nerf_samples_per_ray=8,
+        num_proposal_samples_per_ray=(16,),
+    )
+    config.method_name = "continual-ngp-stream"
+    return config
+
+
+def replayed(tmp_path: Path, num_frames: int = 6, end_marker: bool = False) -> Path:
+    """A capture folder holding the demo room's first `num_frames` frames, as continual-nerf-replay-capture writes."""
+    capture = tmp_path / "capture"
+    replay(
+        ReplayCaptureConfig(output=capture, fps=0, end_marker=end_marker, dataparser=demo_parser(num_frames=num_frames))
+    )
+    return capture
 
 
 def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], dataparser: Sequence[str]) -> List[str]:
@@ -103,6 +149,22 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
     }
     flags = [item for name, value in tiny.items() for item in (f"--{name}", str(value))]
     return [str(Path(sys.executable).with_name("ns-train")), "continual-ngp", *flags, *options, *dataparser]
+
+
+def run_ns_train(command: Sequence[str]) -> subprocess.CompletedProcess:
+    """Run an ns-train command line to its end (one thread), capturing its output as text."""
+    return subprocess.run(command, check=False, capture_output=True, text=True, timeout=600, env=SUBPROCESS_ENV)
+
+
+def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
+    """Send signal `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into
+    place)."""
+    deadline = time.monotonic() + timeout
+    while not checkpoint.exists():
+        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
+        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
+        time.sleep(0.01)
+    os.kill(process.pid, number)
 
 
 def train(config: ContinualTrainerConfig) -> ContinualTrainer:
@@ -220,7 +282,13 @@ def write_colmap_text(scene: Path, image_lines: Optional[List[str]] = None) -> P
 # ---- ScanNet: SensReader's exported folder and the raw .sens file ----
 
 SCANNET_INTRINSIC = np.array([[28.0, 0, 15.5, 0], [0, 29.0, 11.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-"""Colour intrinsics of the generated scenes, as intrinsic_color.txt and the .sens header hold them."""
+"""Colour intrinsics of the generated scenes' 32x24 images, as the .sens header holds them."""
+SCANNET_COLOUR_SIZE = (1296, 968)
+"""ScanNet's colour camera: an exported folder's intrinsic_color.txt is for images of this size."""
+EXPORTED_INTRINSIC = (
+    np.diag([SCANNET_COLOUR_SIZE[0] / WIDTH, SCANNET_COLOUR_SIZE[1] / HEIGHT, 1, 1]) @ SCANNET_INTRINSIC
+)
+"""intrinsic_color.txt of the generated exported folders: the colour camera's, whose 32x24 copies are the images."""
 
 
 def scannet_poses(count: int, seed: int = 0) -> np.ndarray:
@@ -242,10 +310,11 @@ def jpeg_bytes(index: int) -> bytes:
 
 
 def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
-    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt."""
+    """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt; the colour images are 32x24
+    copies of the colour camera's."""
     for sub in ("color", "pose", "intrinsic"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", SCANNET_INTRINSIC)
+    np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", EXPORTED_INTRINSIC)
     for i, pose in enumerate(poses):
         (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
         np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
@@ -259,6 +328,7 @@ def write_sens(
     color_compression: int = 2,
     depth_compression: int = 1,
     sparse_depth_bytes: Optional[int] = None,
+    intrinsic: np.ndarray = SCANNET_INTRINSIC,
 ) -> Dict[int, bytes]:
     """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
 
@@ -272,7 +342,7 @@ def write_sens(
     colours = {i: jpeg_bytes(i) for i in range(len(poses))}
     with path.open("wb") as sens:
         sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
-        for matrix in (SCANNET_INTRINSIC, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
+        for matrix in (intrinsic, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
         sens.write(struct.pack("<ii", color_compression, depth_compression))
         sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))
@@ -416,9 +486,15 @@ def transform_column(matrices: List[Optional[np.ndarray]], fixed_size: bool = Tr
     return pa.array(values, type=pa.list_(pa.float64(), 16 if fixed_size else -1))
 
 
-def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_poses: bool = True) -> Path:
-    """A v2 root of one segment: camera images shuffled over several row groups, one image without its own pose."""
-    rows = [(i, camera) for i in range(NUM_TIMES) for camera in CAMERAS]
+def write_v2(
+    root: Path,
+    skip_columns: Optional[Dict[str, str]] = None,
+    image_poses: bool = True,
+    cameras: Sequence[str] = CAMERAS,
+) -> Path:
+    """A v2 root of one segment of `cameras`: camera images shuffled over several row groups, one image without its
+    own pose."""
+    rows = [(i, camera) for i in range(NUM_TIMES) for camera in cameras]
     rows = [rows[k] for k in np.random.default_rng(0).permutation(len(rows))]
     own_pose = [image_poses and (i, camera) != (1, "SIDE_LEFT") for i, camera in rows]
     images = {
@@ -432,13 +508,13 @@ def write_v2(root: Path, skip_columns: Optional[Dict[str, str]] = None, image_po
         "[CameraImageComponent].pose_timestamp": pa.array([TIMES[i] / 1e6 for i, _ in rows]),
     }
     calibration = {
-        "key.segment_context_name": pa.array([SEGMENT] * len(CAMERAS)),
-        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in CAMERAS], type=pa.int8()),
-        **{name: pa.array([intrinsic(camera)[k] for camera in CAMERAS]) for k, name in enumerate(waymo_v2.INTRINSIC)},
-        waymo_v2.EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in CAMERAS]),
-        waymo_v2.WIDTH: pa.array([SIZES[camera][0] for camera in CAMERAS], type=pa.int32()),
-        waymo_v2.HEIGHT: pa.array([SIZES[camera][1] for camera in CAMERAS], type=pa.int32()),
-        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(CAMERAS), type=pa.int8()),
+        "key.segment_context_name": pa.array([SEGMENT] * len(cameras)),
+        "key.camera_name": pa.array([CAMERA_IDS[camera] for camera in cameras], type=pa.int8()),
+        **{name: pa.array([intrinsic(camera)[k] for camera in cameras]) for k, name in enumerate(waymo_v2.INTRINSIC)},
+        waymo_v2.EXTRINSIC: transform_column([EXTRINSICS[camera] for camera in cameras]),
+        waymo_v2.WIDTH: pa.array([SIZES[camera][0] for camera in cameras], type=pa.int32()),
+        waymo_v2.HEIGHT: pa.array([SIZES[camera][1] for camera in cameras], type=pa.int32()),
+        "[CameraCalibrationComponent].rolling_shutter_direction": pa.array([2] * len(cameras), type=pa.int8()),
     }
     poses = {
         "key.segment_context_name": pa.array([SEGMENT] * NUM_TIMES),
@@ -666,3 +742,46 @@ def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
     }
     torch.save(results, output_dir / f"rank{rank}.pt")
     dist.destroy_process_group()
+
+
+def flip_tensor_bytes(checkpoint: bytes) -> bytes:
+    """A torch.save archive with four bytes flipped in the middle of its largest tensor's data: a valid zip whose
+    tensors torch.load reads without a word, one member's CRC-32 wrong."""
+    with zipfile.ZipFile(io.BytesIO(checkpoint)) as archive:
+        member = max((info for info in archive.infolist() if "/data/" in info.filename), key=lambda i: i.file_size)
+    name_length, extra_length = struct.unpack("<HH", checkpoint[member.header_offset + 26 : member.header_offset + 30])
+    middle = member.header_offset + 30 + name_length + extra_length + member.file_size // 2
+    flipped = bytearray(checkpoint)
+    for offset in range(middle, middle + 4):
+        flipped[offset] ^= 0x5A
+    return bytes(flipped)
+
+
+class FullDisk(io.RawIOBase):
+    """A file on a disk that fills up after `room` bytes: a write beyond raises OSError(ENOSPC), as the OS's does."""
+
+    def __init__(self, file: BinaryIO, room: int) -> None:
+        super().__init__()
+        self.file = file
+        self.room = room
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        if len(data) > self.room:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self.file.write(data)
+
+
+def fill_the_disk_at_checkpoint(monkeypatch, save_number: int = 1) -> None:
+    """From the `save_number`-th torch.save on, the disk is full after 1000 bytes of the checkpoint (torch's zip
+    writer meets the OSError and raises its own RuntimeError, as on a real full disk)."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        real_save(obj, file if len(calls) < save_number else FullDisk(file, room=1000), *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", save)

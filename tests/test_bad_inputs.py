@@ -9,11 +9,18 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
+import json
+import os
+import shutil
+import struct
 import subprocess
+import threading
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -26,18 +33,23 @@ from helpers import (
     corrupt,
     demo_parser,
     edit_transforms,
+    fill_the_disk_at_checkpoint,
+    flip_tensor_bytes,
     ns_train_command,
     numbered_frames,
     scannet_poses,
+    stream_config,
     tiny_config,
     train,
     v1_frame,
+    write_exported,
     write_sens,
     write_sequence,
     write_transforms,
     write_v1,
 )
-from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
+from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils import writer
 from PIL import Image
 
@@ -50,6 +62,14 @@ from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.method_configs import (
+    CONTINUAL_NERF_MEIL,
+    CONTINUAL_NGP,
+    CONTINUAL_NGP_INCRE,
+    continual_ngp_ewc,
+    continual_ngp_joint,
+)
+from continual_nerf.streaming.replay_capture import frame_json, write_frame, write_marker
 
 
 @dataclass
@@ -73,13 +93,19 @@ class BadInput:
     build: Build
     fails_in: Literal["setup", "train"] = "setup"
     """setup: before any training step; train: once training runs (an image is read when its task opens)."""
+    environment: Optional[Callable[[pytest.MonkeyPatch], None]] = None
+    """What goes wrong around the run rather than in its input (a disk that fills up), set up before it starts."""
+    as_root: bool = True
+    """Whether the case can happen to root (who writes into read-only folders)."""
 
 
 # ---- builders ----
 
 
-def corpus_run(parser: DataParserConfig, num_tasks: int = 2, **datamanager_options) -> ContinualTrainerConfig:
-    config = tiny_config(Path("outputs"), parser, num_tasks=num_tasks, iterations_per_task=2)
+def corpus_run(
+    parser: DataParserConfig, num_tasks: int = 2, method: ContinualTrainerConfig = CONTINUAL_NGP, **datamanager_options
+) -> ContinualTrainerConfig:
+    config = tiny_config(Path("outputs"), parser, num_tasks=num_tasks, iterations_per_task=2, method=method)
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **datamanager_options)
     return config
 
@@ -153,6 +179,27 @@ def tum_image_of_another_size(context: Context) -> Tuple[ContinualTrainerConfig,
     return corpus_run(ContinualTumDataParserConfig(data=sequence)), f"{image}: image is 16x12 pixels, its camera 32x24"
 
 
+def zero_focal_length(folder: Path) -> str:
+    edit_transforms(folder, frame_6={"fl_x": 0})
+    return f"{folder / 'transforms.json'} frame images/frame_6.png: focal lengths must be finite and positive"
+
+
+def tum_resized_to_another_aspect_ratio(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    sequence = write_sequence(context.scratch / "rgbd_dataset_freiburg1_desk")
+    for image in (sequence / "rgb").iterdir():
+        Image.new("RGB", (32, 32)).save(image)
+    message = f"{sequence} (sensor calibration): the images are 32x32 pixels, the calibration is for 640x480"
+    return corpus_run(ContinualTumDataParserConfig(data=sequence)), message
+
+
+def scannet_intrinsics_nan(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = write_exported(context.scratch / "scene0101_00", scannet_poses(6))
+    intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
+    intrinsic_file.write_text(intrinsic_file.read_text().replace("1.134000000000000000e+03", "nan", 1))
+    message = f"{intrinsic_file}: focal lengths must be finite and positive, got fx=nan"
+    return corpus_run(ContinualScanNetDataParserConfig(data=folder)), message
+
+
 def tum_without_groundtruth(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     sequence = write_sequence(context.scratch / "rgbd_dataset_freiburg1_desk")
     (sequence / "groundtruth.txt").unlink()
@@ -173,8 +220,15 @@ def corrupt_tfrecord(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     return corpus_run(parser), f"{segment}: record 1 has corrupt data (its CRC does not match)"
 
 
-def earlier_run_config(num_tasks: int = 2) -> ContinualTrainerConfig:
-    return corpus_run(demo_parser(num_frames=16), num_tasks=num_tasks)
+def with_model_options(config: ContinualTrainerConfig, **options: Any) -> ContinualTrainerConfig:
+    config.pipeline.model = dataclasses.replace(config.pipeline.model, **options)
+    return config
+
+
+def earlier_run_config(
+    num_tasks: int = 2, method: ContinualTrainerConfig = CONTINUAL_NGP, **datamanager_options
+) -> ContinualTrainerConfig:
+    return corpus_run(demo_parser(num_frames=16), num_tasks=num_tasks, method=method, **datamanager_options)
 
 
 def earlier_checkpoints(context: Context) -> Path:
@@ -186,12 +240,14 @@ def resume(
     load_dir: Callable[[Context], Path] = earlier_checkpoints,
     load_step: Optional[int] = None,
     num_tasks: int = 2,
+    method: ContinualTrainerConfig = CONTINUAL_NGP,
+    datamanager_options: Optional[Dict[str, Any]] = None,
     **model_options,
 ) -> Build:
-    """The earlier run's config (with `num_tasks` and `model_options` changed) resuming from `load_dir`."""
+    """The earlier run's config (with `num_tasks`, `method` and the options changed) resuming from `load_dir`."""
 
     def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
-        config = earlier_run_config(num_tasks)
+        config = earlier_run_config(num_tasks, method, **(datamanager_options or {}))
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **model_options)
         config.load_dir, config.load_step = load_dir(context), load_step
         return config, message(config.load_dir)
@@ -199,12 +255,30 @@ def resume(
     return build
 
 
-def truncated_checkpoint(context: Context) -> Path:
-    folder = context.scratch / "nerfstudio_models"
-    folder.mkdir()
+def broken_copy(context: Context, name: str, damage: Callable[[bytes], bytes]) -> Path:
+    """A checkpoint folder holding the earlier run's step-1 checkpoint, damaged."""
+    folder = context.scratch / name / "nerfstudio_models"
+    folder.mkdir(parents=True)
     original = context.earlier / "nerfstudio_models" / "step-000000001.ckpt"
-    (folder / original.name).write_bytes(original.read_bytes()[:5000])
+    (folder / original.name).write_bytes(damage(original.read_bytes()))
     return folder
+
+
+def truncated_checkpoint(context: Context) -> Path:
+    return broken_copy(context, "truncated", lambda data: data[:5000])
+
+
+def flipped_bytes_in_a_tensor(context: Context) -> Path:
+    """Four bytes flipped inside the checkpoint's largest tensor (the hash grid)."""
+    return broken_copy(context, "flipped", flip_tensor_bytes)
+
+
+def read_only_output_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = context.earlier.parents[2] / "read-only"
+    folder.mkdir(mode=0o555)
+    config = earlier_run_config()
+    config.experiment_name = folder.name
+    return config, f"{folder / 'continual-ngp'}: permission denied: the folder is read-only for this user"
 
 
 def empty_folder(context: Context) -> Path:
@@ -236,6 +310,16 @@ CORPUS = [
         "rays-per-batch-0",
         option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
     ),
+    *(
+        BadInput(
+            f"eval-rays-per-chunk-{chunk}-{method.method_name}",
+            lambda context, chunk=chunk, method=method: (
+                with_model_options(earlier_run_config(method=method), eval_num_rays_per_chunk=chunk),
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {chunk}",
+            ),
+        )
+        for chunk, method in ((0, CONTINUAL_NGP), (-4096, CONTINUAL_NGP), (0, CONTINUAL_NERF_MEIL))
+    ),
     BadInput("demo-no-frames", option("continual-demo --num-frames must be at least 1, got 0", {"num_frames": 0})),
     BadInput("demo-width-0", option("continual-demo --width must be at least 1, got 0", {"width": 0})),
     BadInput("missing-data-folder", missing_capture),
@@ -247,6 +331,9 @@ CORPUS = [
     BadInput("16-bit-image", nerfstudio_capture(sixteen_bit_image), fails_in="train"),
     BadInput("image-size-differs-in-one-camera", tum_image_of_another_size, fails_in="train"),
     BadInput("tum-missing-groundtruth", tum_without_groundtruth),
+    BadInput("transforms-zero-focal-length", nerfstudio_capture(zero_focal_length)),
+    BadInput("tum-resized-to-another-aspect-ratio", tum_resized_to_another_aspect_ratio),
+    BadInput("scannet-intrinsics-nan", scannet_intrinsics_nan),
     BadInput("scannet-truncated-sens", truncated_sens),
     BadInput("waymo-corrupt-record", corrupt_tfrecord),
     BadInput(
@@ -284,6 +371,42 @@ CORPUS = [
         "resume-finished-run", resume(lambda d: f"{d / 'step-000000003.ckpt'}: its run already trained all 2 tasks")
     ),
     BadInput("run-folder-of-an-earlier-run", reuse_earlier_folder),
+    BadInput(
+        "disk-full-during-a-checkpoint",
+        lambda context: (
+            earlier_run_config(),
+            "nerfstudio_models/step-000000001.ckpt: cannot be written (no space left on the device)",
+        ),
+        fails_in="train",
+        environment=fill_the_disk_at_checkpoint,
+    ),
+    BadInput("read-only-output-folder", read_only_output_folder, as_root=False),
+    BadInput(
+        "resume-flipped-bytes-in-a-tensor",
+        resume(lambda d: f"{d / 'step-000000001.ckpt'}: corrupt checkpoint (archive/data/", flipped_bytes_in_a_tensor),
+    ),
+    *(
+        BadInput(
+            f"resume-as-{method.method_name}",
+            resume(
+                lambda d,
+                name=method.method_name: f"{d / 'step-000000001.ckpt'}: a checkpoint of continual-ngp, not of "
+                f"{name}; resume it with ns-train continual-ngp",
+                load_step=1,
+                method=method,
+            ),
+        )
+        for method in (CONTINUAL_NGP_INCRE, continual_ngp_ewc.config, continual_ngp_joint.config)
+    ),
+    BadInput(
+        "resume-fewer-iterations-per-task",
+        resume(
+            lambda d: f"{d / 'step-000000001.ckpt'}: is at step 1, beyond the 2 iterations this run has "
+            "(--pipeline.datamanager.iterations-per-task 1 for 2 tasks, or --max-num-iterations)",
+            load_step=1,
+            datamanager_options={"iterations_per_task": 1},
+        ),
+    ),
 ]
 
 
@@ -331,16 +454,25 @@ def exit_line(config: ContinualTrainerConfig) -> object:
     return exit_info.value.code
 
 
-@pytest.mark.parametrize("case", CORPUS, ids=[case.name for case in CORPUS])
-def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInput, earlier: Path, tmp_path):
+ROOT = pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders (run as another user)")
+
+
+@pytest.mark.parametrize(
+    "case", [pytest.param(case, id=case.name, marks=[] if case.as_root else [ROOT]) for case in CORPUS]
+)
+def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(
+    case: BadInput, earlier: Path, tmp_path, monkeypatch
+):
     before = digest(earlier)
     config, message = case.build(Context(scratch=tmp_path, earlier=earlier))
+    if case.environment is not None:
+        case.environment(monkeypatch)
     config.output_dir = earlier.parents[2]
     if config.timestamp != earlier.name:
         config.timestamp = case.name
     line = exit_line(config)
     assert isinstance(line, str), "a SystemExit with a message exits with status 1"
-    assert line.startswith("continual-ngp: error: ") and "\n" not in line
+    assert line.startswith(f"{config.method_name}: error: ") and "\n" not in line
     assert message in line
     assert digest(earlier) == before
     results = config.get_base_dir() / ACCURACY_MATRIX_FILENAME
@@ -355,6 +487,14 @@ def test_bad_input_ends_with_one_line_and_leaves_earlier_runs_alone(case: BadInp
 PARSER_OPTIONS = [
     (ContinualDemoDataParserConfig(num_frames=0), "continual-demo --num-frames must be at least 1, got 0"),
     (ContinualDemoDataParserConfig(fov_degrees=180.0), "continual-demo --fov-degrees must be in (0, 180), got 180.0"),
+    (
+        ContinualDemoDataParserConfig(exposure_strength=1.0),
+        "continual-demo --exposure-strength must be in [0, 1), got 1.0",
+    ),
+    (
+        ContinualDemoDataParserConfig(pose_noise_degrees=-1.0),
+        "continual-demo --pose-noise-degrees must not be negative, got -1.0",
+    ),
     (
         OrderedCaptureDataParserConfig(order="random"),
         "--order must be one of auto, timestamp, filename, file, got random",
@@ -386,8 +526,19 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
     demo = ["continual-demo", "--data", str(DEMO_CACHE), "--num-frames", "12", "--width", "16", "--height", "12"]
     capture = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
     image_line = truncated_image_of_task_2(capture)
-    checkpoints = truncated_checkpoint(context)
+    truncated, flipped = truncated_checkpoint(context), flipped_bytes_in_a_tensor(context)
     tasks = ["--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "2"]
+    earlier_demo = [
+        "continual-demo",
+        "--data",
+        str(DEMO_CACHE),
+        "--num-frames",
+        "16",
+        "--width",
+        "24",
+        "--height",
+        "18",
+    ]
     return [
         (
             "num-tasks-0",
@@ -397,21 +548,13 @@ def cli_cases(context: Context) -> List[Tuple[str, List[str], str]]:
         ("truncated-image-released-mid-run", [*tasks, "continual-nerfstudio", "--data", str(capture)], image_line),
         (
             "resume-truncated-checkpoint",
-            [
-                *tasks,
-                "--load-dir",
-                str(checkpoints),
-                "continual-demo",
-                "--data",
-                str(DEMO_CACHE),
-                "--num-frames",
-                "16",
-                "--width",
-                "24",
-                "--height",
-                "18",
-            ],
-            f"{checkpoints / 'step-000000001.ckpt'}: not a readable checkpoint (",
+            [*tasks, "--load-dir", str(truncated), *earlier_demo],
+            f"{truncated / 'step-000000001.ckpt'}: not a readable checkpoint (",
+        ),
+        (
+            "resume-flipped-bytes-in-a-tensor",
+            [*tasks, "--load-dir", str(flipped), *earlier_demo],
+            f"{flipped / 'step-000000001.ckpt'}: corrupt checkpoint (",
         ),
     ]
 
@@ -438,3 +581,242 @@ def test_ns_train_prints_one_line_no_traceback_and_exits_non_zero(earlier: Path,
         assert "Traceback" not in stderr, stderr[-3000:]
         assert stderr.strip().splitlines()[-1].startswith(f"continual-ngp: error: {expected}"), stderr[-3000:]
     assert digest(earlier) == before
+
+
+# ---- streamed frames: the capture folder is another process's output, so a frame that can never be used is skipped
+# with one warning line naming it, at start-up and mid-run, and training goes on ----
+
+SOURCE_FRAMES = 12
+"""The demo room's frames the capture folders below are written from (frame n shows source frame n mod 12)."""
+
+
+@functools.lru_cache(maxsize=1)
+def source_frames() -> DataparserOutputs:
+    return demo_parser(num_frames=SOURCE_FRAMES).setup().get_dataparser_outputs(split="train")
+
+
+def write_good_frame(capture: Path, number: int) -> None:
+    source = source_frames()
+    write_frame(capture, number, Path(source.image_filenames[number % SOURCE_FRAMES]), frame_json(source.cameras, 0))
+
+
+def write_frame_json(capture: Path, number: int, **changes: Any) -> Path:
+    """Frame `number`'s image as the protocol writes it, and its JSON with `changes`."""
+    write_good_frame(capture, number)
+    path = capture / f"{number:06d}.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+    return path
+
+
+def outside_folder(capture: Path) -> Path:
+    """A folder beside the capture holding what a hostile frame points at: an image and a valid frame JSON."""
+    folder = capture.parent / "outside"
+    if not folder.is_dir():
+        folder.mkdir()
+        shutil.copyfile(source_frames().image_filenames[0], folder / "secret.png")
+        (folder / "frame.json").write_text(
+            json.dumps({"file_path": "images/000000.png", **frame_json(source_frames().cameras, 0)})
+        )
+    return folder
+
+
+def png_header(width: int, height: int) -> bytes:
+    """A PNG that announces `width` x `height` pixels in its header."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0")) + chunk(b"IEND", b"")
+
+
+def absolute_image_path(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path=str(outside_folder(capture) / "secret.png"))
+    return "lies outside the capture folder"
+
+
+def image_path_climbing_out(capture: Path, number: int) -> str:
+    outside_folder(capture)
+    write_frame_json(capture, number, file_path="images/../../outside/secret.png")
+    return "lies outside the capture folder"
+
+
+def image_symlink_out(capture: Path, number: int) -> str:
+    write_good_frame(capture, number)
+    image = capture / "images" / f"{number:06d}.png"
+    image.unlink()
+    image.symlink_to(outside_folder(capture) / "secret.png")
+    return "lies outside the capture folder"
+
+
+def folder_symlink_out(capture: Path, number: int) -> str:
+    link = capture / "linked"
+    if not link.is_symlink():
+        link.symlink_to(outside_folder(capture), target_is_directory=True)
+    write_frame_json(capture, number, file_path="linked/secret.png")
+    return "lies outside the capture folder"
+
+
+def json_symlink_out(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").symlink_to(outside_folder(capture) / "frame.json")
+    return "lies outside the capture folder"
+
+
+def image_fifo(capture: Path, number: int) -> str:
+    write_good_frame(capture, number)
+    image = capture / "images" / f"{number:06d}.png"
+    image.unlink()
+    os.mkfifo(image)
+    return "not a regular file (a FIFO); not read"
+
+
+def image_folder(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path="images")
+    return "not a regular file (a folder); not read"
+
+
+def json_fifo(capture: Path, number: int) -> str:
+    os.mkfifo(capture / f"{number:06d}.json")
+    return "not a regular file (a FIFO); not read"
+
+
+def decompression_bomb(capture: Path, number: int) -> str:
+    (capture / "images" / "bomb.png").write_bytes(png_header(100000, 100000))
+    write_frame_json(capture, number, file_path="images/bomb.png", w=100000, h=100000)
+    return "is too large to decode (Image size (10000000000 pixels) exceeds limit"
+
+
+def deeply_nested_json(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").write_text("[" * 100000 + "]" * 100000)
+    return "not a usable frame JSON (maximum recursion depth exceeded"
+
+
+def oversized_json(capture: Path, number: int) -> str:
+    (capture / f"{number:06d}.json").write_text(" " * (2 << 20) + "{}")
+    return "larger than 1 MiB, not a frame JSON; not read"
+
+
+def intrinsics(message: str, **changes: Any) -> Callable[[Path, int], str]:
+    """A frame whose intrinsics are changed by `changes`; its warning line holds `message`."""
+
+    def write(capture: Path, number: int) -> str:
+        write_frame_json(capture, number, **changes)
+        return message
+
+    return write
+
+
+def file_path_not_a_string(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path=["images", "000000.png"])
+    return "a frame needs a `file_path` string"
+
+
+def file_path_with_nul(capture: Path, number: int) -> str:
+    write_frame_json(capture, number, file_path="images/\u0000.png")
+    return "not a usable path (embedded null byte)"
+
+
+HOSTILE_FRAMES: Dict[str, Callable[[Path, int], str]] = {
+    "absolute-image-path": absolute_image_path,
+    "image-path-climbing-out": image_path_climbing_out,
+    "image-symlink-out": image_symlink_out,
+    "folder-symlink-out": folder_symlink_out,
+    "json-symlink-out": json_symlink_out,
+    "image-fifo": image_fifo,
+    "image-is-a-folder": image_folder,
+    "json-fifo": json_fifo,
+    "decompression-bomb": decompression_bomb,
+    "deeply-nested-json": deeply_nested_json,
+    "oversized-json": oversized_json,
+    "width-nan": intrinsics("image size w=nan h=18 must be whole numbers of at least 1", w=float("nan")),
+    "focal-nan": intrinsics("focal lengths must be finite and positive, got fx=nan", fl_x=float("nan")),
+    "focal-zero": intrinsics("focal lengths must be finite and positive, got fx=0", fl_x=0),
+    "focal-negative": intrinsics("focal lengths must be finite and positive, got fx=17.1378 fy=-20", fl_y=-20.0),
+    "principal-point-infinite": intrinsics("principal point cx=inf cy=9 lies outside the 24x18 image", cx=float("inf")),
+    "file-path-not-a-string": file_path_not_a_string,
+    "file-path-with-nul": file_path_with_nul,
+}
+"""Writers of a frame that can never be used; each returns the text its warning line holds."""
+
+
+def finishes(function: Callable[[], Any], seconds: float = 300.0) -> Any:
+    """`function()`, run in a thread so a reader blocked on a FIFO fails the test instead of hanging the suite."""
+    outcome: Dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = function()
+        except BaseException as error:
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"still blocked after {seconds:g} s"
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome.get("value")
+
+
+def skipped_lines(output: str, capture: Path, numbers: List[int]) -> Dict[int, List[str]]:
+    """The warning lines naming each of the frames `numbers`."""
+    lines = [line for line in output.splitlines() if line.endswith("; frame skipped")]
+    return {
+        number: [line for line in lines if line.startswith(f"{capture / f'{number:06d}.json'}: ")] for number in numbers
+    }
+
+
+@pytest.mark.parametrize("write", HOSTILE_FRAMES.values(), ids=HOSTILE_FRAMES.keys())
+def test_a_hostile_frame_at_start_up_is_skipped_with_one_warning_line(write, tmp_path, capsys):
+    capture = tmp_path / "capture"
+    for number in range(5):
+        if number == 2:
+            expected = write(capture, number)
+        else:
+            write_good_frame(capture, number)
+    write_marker(capture, 4, "end")
+    capsys.readouterr()
+    parser = StreamDataParserConfig(data=capture, frames_per_task=0, normalization="none").setup()
+    outputs = finishes(lambda: parser.get_dataparser_outputs(split="train"))
+    assert [[frame.name for frame in task] for task in parser.capture.tasks] == [
+        [f"{number:06d}.json" for number in (0, 1, 3, 4)]
+    ]
+    (line,) = skipped_lines(capsys.readouterr().out, capture, [2])[2]
+    assert expected in line
+    real_capture = capture.resolve()
+    assert all(Path(path).is_relative_to(real_capture) for path in outputs.image_filenames)
+
+
+@pytest.mark.slow
+def test_hostile_frames_arriving_mid_run_are_skipped_and_training_goes_on(tmp_path, capsys):
+    """Task 1's frames are there at start; the rest, every hostile frame among them, arrive after the first step."""
+    capture = tmp_path / "capture"
+    for number in range(4):
+        write_good_frame(capture, number)
+    hostile = {4 + offset: write for offset, write in enumerate(HOSTILE_FRAMES.values())}
+    good = [4 + len(hostile) + offset for offset in range(4)]
+    expected: Dict[int, str] = {}
+
+    def rest_of_the_capture(step: int) -> None:
+        if step == 0:
+            expected.update({number: write(capture, number) for number, write in hostile.items()})
+            for number in good:
+                write_good_frame(capture, number)
+            write_marker(capture, good[-1], "end")
+
+    config = stream_config(tmp_path / "outputs", capture, "wait", frames_per_task=4, iterations_per_task=2)
+    config.save_config()
+    with own_event_writers():
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainer.callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], rest_of_the_capture)
+        )
+        finishes(trainer.train)
+    matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+    assert (matrix.status, len(matrix.psnr)) == ("finished", 2)
+    used = [frame.name for frame in trainer.pipeline.datamanager.frames]
+    assert used == [f"{number:06d}.json" for number in [0, 1, 2, 3, *good]]
+    warnings = skipped_lines(capsys.readouterr().out, capture, list(hostile))
+    for number, text in expected.items():
+        assert len(warnings[number]) == 1 and text in warnings[number][0], (number, warnings[number])

@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
+import errno
 import io
 import os
+import subprocess
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Callable, Optional
 
 import pytest
 import torch
-from helpers import demo_parser, tiny_config
+from helpers import demo_parser, fill_the_disk_at_checkpoint, flip_tensor_bytes, tiny_config
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.atomic_files import write_atomically, write_text_atomically
+from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.errors import CheckpointError, OutputError
 
 
 class Killed(BaseException):
@@ -117,3 +122,112 @@ def test_temporary_checkpoint_files_live_outside_the_checkpoint_folder(run_dir, 
         )
     ]
     assert [path.name for path in config.get_checkpoint_dir().iterdir()] == ["step-000000000.ckpt"]
+
+
+def test_bytes_flipped_inside_a_tensor_are_caught_by_the_archive_crc_before_loading(tmp_path):
+    path = tmp_path / "step-000000001.ckpt"
+    weights = torch.arange(100_000, dtype=torch.float32)
+    torch.save({"step": 1, "pipeline": {"field": weights}, "optimizers": {}, "scalers": {}}, path)
+    assert torch.equal(read_checkpoint(path)["pipeline"]["field"], weights)
+    path.write_bytes(flip_tensor_bytes(path.read_bytes()))
+    loaded = torch.load(path, map_location="cpu", weights_only=True)["pipeline"]["field"]
+    assert not torch.equal(loaded, weights), "torch.load alone reads the corrupt tensor without a word"
+    with pytest.raises(CheckpointError) as raised:
+        read_checkpoint(path)
+    assert str(raised.value) == (
+        f"{path}: corrupt checkpoint (step-000000001/data/0 does not match its CRC-32); "
+        "resume from another with --load-step"
+    )
+
+
+@pytest.mark.parametrize(
+    "code, cause",
+    [
+        (errno.ENOSPC, "no space left on the device"),
+        (errno.EROFS, "read-only file system"),
+        (errno.EACCES, "permission denied: the folder is read-only for this user"),
+    ],
+)
+def test_a_failed_write_names_the_file_and_the_cause_and_keeps_the_previous_file(tmp_path, code, cause):
+    path = tmp_path / ACCURACY_MATRIX_FILENAME
+    write_text_atomically(path, '{"psnr": [[20.0]]}')
+
+    def half_then_fails(file: BinaryIO) -> None:
+        file.write(b'{"psnr": [[20.0], [19.')
+        raise OSError(code, os.strerror(code))
+
+    with pytest.raises(OutputError) as raised:
+        write_atomically(path, half_then_fails)
+    assert str(raised.value) == f"{path}: cannot be written ({cause})"
+    assert path.read_text() == '{"psnr": [[20.0]]}'
+    assert [p.name for p in tmp_path.iterdir()] == [ACCURACY_MATRIX_FILENAME], "no temporary file left"
+
+
+def ends_with_one_line(config: ContinualTrainerConfig, after_iteration: Optional[Callable[[int], None]] = None) -> str:
+    """The line a run (its config saved) ends with, set up and trained as ns-train does."""
+    with pytest.raises(SystemExit) as exit_info:
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        if after_iteration is not None:
+            trainer.callbacks.append(
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_iteration)
+            )
+        trainer.train()
+    line = exit_info.value.code
+    assert isinstance(line, str) and line.startswith("continual-ngp: error: ") and "\n" not in line
+    return line
+
+
+def assert_step_3_intact(config: ContinualTrainerConfig, status: str) -> None:
+    checkpoints = [path.name for path in config.get_checkpoint_dir().iterdir()]
+    assert checkpoints == ["step-000000003.ckpt"], "the previous checkpoint is all there is"
+    assert read_checkpoint(config.get_checkpoint_dir() / "step-000000003.ckpt")["step"] == 3, "and it is intact"
+    assert not list(config.get_base_dir().glob(".*.partial-*")), "no temporary file left"
+    assert AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME).status == status
+
+
+@pytest.mark.slow
+def test_a_full_disk_during_a_save_is_one_line_and_the_previous_checkpoint_stays(run_dir, monkeypatch):
+    config = three_tasks(run_dir, "full-disk")
+    fill_the_disk_at_checkpoint(monkeypatch, save_number=2)  # the checkpoint at the end of task 2
+    line = ends_with_one_line(config)
+    checkpoint = config.get_checkpoint_dir() / "step-000000007.ckpt"
+    assert line.endswith(f"{checkpoint}: cannot be written (no space left on the device)")
+    assert_step_3_intact(config, "failed")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders (run as another user to test this)")
+def test_a_run_folder_made_read_only_mid_run_is_one_line_and_the_previous_checkpoint_stays(run_dir):
+    config = three_tasks(run_dir, "read-only")
+    folders = [config.get_base_dir(), config.get_checkpoint_dir()]
+
+    def read_only_after_task_1(step: int) -> None:
+        if step == 4:
+            for folder in folders:
+                folder.chmod(0o555)
+
+    try:
+        line = ends_with_one_line(config, read_only_after_task_1)
+    finally:
+        for folder in folders:
+            folder.chmod(0o755)
+    assert line.endswith(": cannot be written (permission denied: the folder is read-only for this user)")
+    assert f"{config.get_base_dir()}" in line
+    assert_step_3_intact(config, "training")  # a read-only folder cannot record "failed" either
+
+
+def test_temporary_files_a_killed_save_left_are_removed_at_the_next_start(run_dir, capsys):
+    killed = three_tasks(run_dir, "killed")
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = killed.get_base_dir() / f".step-000000003.ckpt.partial-{dead.pid}"
+    in_progress = killed.get_base_dir() / f".accuracy_matrix.json.partial-{os.getpid()}"
+    stale.touch()  # the 0-byte file a SIGKILL during a save leaves
+    in_progress.touch()
+    resumed = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=4)
+    resumed.timestamp = "resumed"
+    resumed.load_dir = killed.get_checkpoint_dir()
+    resumed.save_config()  # the start of ns-train
+    assert not stale.exists() and in_progress.exists(), "only files of processes no longer running are removed"
+    assert f"Removed {stale}, left by a save that was killed" in capsys.readouterr().out

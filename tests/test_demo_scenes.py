@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from helpers import DEMO_CACHE
 from PIL import Image
 
 from continual_nerf.core.task_split import split_into_tasks
+from continual_nerf.dataparsers import demo_capture
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
 
@@ -53,3 +55,67 @@ def test_street_images_differ_along_the_street_and_between_cameras():
     assert images[0].shape == (18, 24, 3)
     assert np.abs(images[0] - images[1]).mean() > 10, "front and front-left see different things"
     assert np.abs(images[0] - images[21]).mean() > 10, "the start and the end of the street look different"
+
+
+def demo(num_frames: int = 8, **options) -> ContinualDemoDataParserConfig:
+    return ContinualDemoDataParserConfig(data=DEMO_CACHE, num_frames=num_frames, width=24, height=18, **options)
+
+
+def pixels(path) -> np.ndarray:
+    return np.asarray(Image.open(path), dtype=np.float64)
+
+
+def test_exposure_scales_each_frame_by_its_gain_and_jumps_between_segments():
+    clean, exposed = demo(), demo(exposure_strength=0.3, exposure_segments=2)
+    clean_outputs = clean.setup().get_dataparser_outputs("train")
+    parser = exposed.setup()
+    outputs = parser.get_dataparser_outputs("train")
+    gains = parser.frame_gains(parser.capture())
+    assert torch.equal(outputs.cameras.camera_to_worlds, clean_outputs.cameras.camera_to_worlds), "same poses"
+    for frame, gain in enumerate(gains):
+        # the same pose, exposed differently: every unsaturated pixel is the exact one times the frame's gain
+        exact, captured = pixels(clean_outputs.image_filenames[frame]), pixels(outputs.image_filenames[frame])
+        unsaturated = exact * gain < 254.5
+        assert np.abs(captured - exact * gain)[unsaturated].max() <= 0.5
+    assert gains.min() >= (1 - 0.3) * (1 - 0.1) * (1 - 0.06) and gains.max() <= (1 + 0.3) * (1 + 0.1) * (1 + 0.06)
+    within = max(np.abs(np.diff(gains[:4], axis=0)).max(), np.abs(np.diff(gains[4:], axis=0)).max())
+    assert np.abs(gains[4] - gains[3]).max() > 3 * within, "a jump where the second segment starts, drift within"
+
+
+def test_each_camera_of_the_rig_has_its_own_colour_response():
+    clean, responding = demo(scene="street"), demo(scene="street", camera_response_strength=0.2)
+    clean_outputs = clean.setup().get_dataparser_outputs("train")
+    parser = responding.setup()
+    outputs = parser.get_dataparser_outputs("train")
+    responses = parser.camera_responses(parser.capture())
+    assert len(responses) == 3 and outputs.metadata["camera_id"].tolist() == [0, 1, 2] * 8
+    for frame, camera in enumerate(outputs.metadata["camera_id"].tolist()):
+        exact, captured = pixels(clean_outputs.image_filenames[frame]), pixels(outputs.image_filenames[frame])
+        response = responses[camera]
+        expected = np.clip(response.gain * (exact / 255) ** response.gamma, 0, 1) * 255
+        assert np.abs(captured - expected).max() <= 0.5
+    gains = np.stack([response.gain for response in responses])
+    assert np.abs(gains[:, None] - gains[None]).max() > 0.1, "the cameras do not see colour alike"
+
+
+def test_pose_noise_moves_the_returned_poses_by_the_set_amounts_and_leaves_the_images_exact():
+    clean_outputs = demo(num_frames=120).setup().get_dataparser_outputs("train")
+    outputs = (
+        demo(num_frames=120, pose_noise_degrees=1.0, pose_noise_translation=0.01)
+        .setup()
+        .get_dataparser_outputs("train")
+    )
+    assert outputs.image_filenames == clean_outputs.image_filenames, "images stay rendered from the true poses"
+    true, noisy = clean_outputs.cameras.camera_to_worlds.double().numpy(), outputs.cameras.camera_to_worlds.double()
+    degrees, distances = demo_capture.pose_errors(noisy.numpy(), true)
+    length = demo_capture.trajectory_length(true[:, :, 3])
+    assert np.sqrt((degrees**2).mean()) == pytest.approx(1.0, rel=1e-3)
+    assert np.sqrt((distances**2).mean()) / length == pytest.approx(0.01, rel=1e-3)
+    assert np.abs(np.diff(degrees)).max() < 0.3 * degrees.max(), "smooth along the capture, as drift is"
+
+
+def test_the_rig_shares_one_pose_error_per_instant():
+    clean_outputs = demo(scene="street").setup().get_dataparser_outputs("train")
+    outputs = demo(scene="street", pose_noise_translation=0.02).setup().get_dataparser_outputs("train")
+    shift = (outputs.cameras.camera_to_worlds - clean_outputs.cameras.camera_to_worlds)[:, :, 3].view(8, 3, 3)
+    assert torch.allclose(shift, shift[:, :1].expand(8, 3, 3), atol=1e-6) and shift.abs().max() > 1e-3

@@ -6,13 +6,21 @@ from __future__ import annotations
 import inspect
 import random
 import socket
+import threading
+import time
 from datetime import timedelta
+from typing import List
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
+import viser.transforms as vtf
 from helpers import demo_parser, tiny_config, train
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer
+from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from torch import nn
@@ -21,7 +29,7 @@ from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
-from continual_nerf.recipes import small_model
+from continual_nerf.recipes import set_up_like_ns_train, small_model
 
 SCENE_BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
 
@@ -89,6 +97,27 @@ def test_a_resumed_run_ends_at_the_same_step_as_the_uninterrupted_one(tmp_path):
     trainer = train(resumed)
     matrix = AccuracyMatrix.read(resumed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     assert matrix.finished and matrix.steps == [1, 3] and trainer.step == 3
+    assert compat.first_step(trainer) == 2, "the loop started after the checkpoint's step"
+
+
+@pytest.mark.slow
+def test_leaving_the_viewer_s_pause_lets_the_loop_go_on(tmp_path):
+    """Depends on nerfstudio's loop waiting while `training_state` is "paused" (leave_pause)."""
+    config = tiny_config(tmp_path / "outputs", demo_parser(), num_tasks=2, iterations_per_task=2)
+    config.start_paused = True
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    steps: List[int] = []
+
+    def trained(step: int) -> None:
+        steps.append(step)
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], trained))
+    thread = threading.Thread(target=trainer.train, daemon=True)  # paused, it would wait for ever
+    thread.start()
+    compat.leave_pause(trainer)
+    thread.join(timeout=300)
+    assert not thread.is_alive() and steps == [0, 1, 2, 3], "the paused loop went on and trained every step"
 
 
 def _free_port() -> int:
@@ -110,13 +139,23 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         assert viewer.camera_handles == {} and viewer.config.max_num_display_images > 0, "no frustum, config restored"
         assert isinstance(compat.panel_order(viewer), float)
         assert compat.training_cameras_shown(viewer)
-        compat.register_frustum(viewer, 3, "handle", np.eye(4)[:3])
-        assert viewer.camera_handles[3] == "handle" and viewer.original_c2w[3].shape == (3, 4)
+        handle = mock.Mock()
+        compat.register_frustum(viewer, 3, handle, np.eye(4)[:3])
+        assert viewer.camera_handles[3] is handle and viewer.original_c2w[3].shape == (3, 4)
         compat.set_current_camera(viewer, 3)
         assert viewer.current_camera_idx == 3
-        viewer.camera_handles.clear()
+        compat.remove_frustum(viewer, 3)
+        handle.remove.assert_called_once()
+        assert viewer.camera_handles == {} and viewer.original_c2w == {}
         compat.show_resume_button(viewer)
         assert not viewer.pause_train.visible and viewer.resume_train.visible
+        compat.set_render_defaults(viewer, 128, 0.95)
+        assert viewer.control_panel.max_res == 128 and viewer.control_panel.train_util == 0.95
+        compat.show_step(viewer, 7)
+        assert viewer.stats_markdown.content.splitlines()[0].startswith("Step: 7")
+        compat.disable_training_buttons(viewer)
+        assert viewer.pause_train.disabled and viewer.resume_train.disabled
+        compat.rerender(viewer)  # no browser connected: nothing to render, and no error
     finally:
         trainer.shutdown()
 
@@ -156,3 +195,76 @@ def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(m
         None, timedelta(seconds=30), "cpu",
     )  # fmt: skip
     assert seen == [((0, 1, None, 0), torch.cuda.is_available())]  # training sees the machine as it is
+
+
+def test_trainer_methods_the_continual_trainer_overrides():
+    for name in compat.TRAINER_OVERRIDES:
+        assert callable(getattr(Trainer, name, None)), f"nerfstudio's Trainer has no {name} any more"
+    setup, train = inspect.getsource(Trainer.setup), inspect.getsource(Trainer.train)
+    assert setup.index("ViewerState(") < setup.index("self._check_viewer_warnings()"), "called after the viewer starts"
+    assert "self._load_checkpoint()" in setup and "self._init_viewer_state()" in train
+
+
+def test_a_camera_message_makes_a_viser_client_with_that_camera():
+    import viser
+    import websocket
+
+    port = _free_port()
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    cameras = []
+    server.on_client_connect(lambda client: cameras.append(client.camera))
+    position, look_at, up = np.array([1.0, -8.0, 6.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    page = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=10, suppress_origin=True)
+    try:
+        page.send_binary(compat.viewer_camera_message(position, look_at, up, fov=1.0, aspect=1.5))
+        deadline = time.monotonic() + 30
+        while not cameras and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert cameras, "viser did not take the message as a client's camera"
+        camera = cameras[0]
+        assert np.allclose(camera.position, position) and np.allclose(camera.look_at, look_at)
+        assert camera.fov == 1.0 and camera.aspect == 1.5
+        # viser's camera looks down its +z axis (OpenCV): the orientation sent must look at look_at
+        forward = vtf.SO3(camera.wxyz).as_matrix()[:, 2]
+        assert np.allclose(forward, (look_at - position) / np.linalg.norm(look_at - position), atol=1e-6)
+    finally:
+        page.close()
+        server.stop()
+
+
+def test_the_viewers_render_speed_is_read_where_the_render_thread_puts_it():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import writer
+
+    writer.setup_local_writer(LoggingConfig(), max_iter=10)  # the render thread writes once this was called
+    assert compat.viewer_render_rays_per_second() is None
+    writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=1000.0, step=0, avg_over_steps=True)
+    writer.put_time(name=writer.EventName.VIS_RAYS_PER_SEC, duration=3000.0, step=1, avg_over_steps=True)
+    assert compat.viewer_render_rays_per_second() == 2000.0
+
+
+def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_otherwise():
+    config = ContinualNGPModelConfig(compile=False, use_appearance_embedding=True, appearance_embed_dim=4)
+    model = small_model(config).setup(scene_box=SCENE_BOX, num_train_data=2)
+    codes = compat.appearance_codes(model.field)
+    assert codes is not None
+    with torch.no_grad():
+        codes.embedding.weight.copy_(torch.tensor([[3.0, -3.0, 3.0, -3.0], [-3.0, 3.0, -3.0, 3.0]]))
+    replacement = Embedding(2, 4)
+    compat.set_appearance_codes(model.field, replacement)
+    assert compat.appearance_codes(model.field) is replacement
+    compat.set_appearance_codes(model.field, codes)
+    model.eval()
+
+    def rendered(frame: int) -> torch.Tensor:
+        torch.manual_seed(0)
+        rays = random_rays(model, 16)
+        rays.camera_indices = torch.full_like(rays.camera_indices, frame)
+        with torch.no_grad():
+            return model(rays)["rgb"]
+
+    assert torch.equal(rendered(0), rendered(1)), "outside training every ray gets the mean code"
+    with compat.codes_looked_up_per_ray(model.field):
+        assert (rendered(0) - rendered(1)).abs().max() > 1e-4, "each ray gets its frame's code"
+        assert not model.proposal_networks.training, "only the field's own flag is set"
+    assert not model.field.training

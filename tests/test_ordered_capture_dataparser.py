@@ -192,6 +192,30 @@ def test_bad_intrinsics_and_camera_models(numbered):
     assert error_of(numbered).endswith(": fl_x missing (set per frame or once for the whole file)")
 
 
+@pytest.mark.parametrize(
+    "values, expected",
+    [
+        ({"fl_x": float("nan")}, "focal lengths must be finite and positive, got fx=nan fy=31"),
+        ({"fl_y": 0}, "focal lengths must be finite and positive, got fx=30 fy=0"),
+        ({"fl_x": -30.0}, "focal lengths must be finite and positive, got fx=-30 fy=31"),
+        (
+            {"cx": float("inf")},
+            "principal point cx=inf cy=12 lies outside the 32x24 image (intrinsics of another image size?)",
+        ),
+        (
+            {"cy": 200.0},
+            "principal point cx=16 cy=200 lies outside the 32x24 image (intrinsics of another image size?)",
+        ),
+        ({"w": float("nan")}, "image size w=nan h=24 must be whole numbers of at least 1"),
+        ({"h": 0}, "image size w=32 h=0 must be whole numbers of at least 1"),
+        ({"k1": float("nan")}, "distortion parameters must be finite numbers"),
+    ],
+)
+def test_intrinsics_are_checked_as_every_parser_checks_them(numbered, values, expected):
+    edit_transforms(numbered, frame_8=values)
+    assert error_of(numbered) == f"{numbered / 'transforms.json'} frame images/frame_8.png: {expected}"
+
+
 def test_unreadable_json_and_json_without_frames(tmp_path):
     (tmp_path / "transforms.json").write_text('{"frames": [')
     assert error_of(tmp_path).startswith(f"{tmp_path / 'transforms.json'}: not valid JSON (")

@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command
+from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, run_ns_train, signal_when_saved
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
@@ -60,23 +58,13 @@ def command(output_dir: Path, data: Path, timestamp: str, *options: str) -> list
     )
 
 
-def kill_when_saved(process: subprocess.Popen, checkpoint: Path, timeout: float = 300.0) -> None:
-    """SIGKILL `process` as soon as `checkpoint` appears (it appears complete: checkpoints are renamed into place)."""
-    deadline = time.monotonic() + timeout
-    while not checkpoint.exists():
-        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
-        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
-        time.sleep(0.01)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
-
-
 def test_a_run_killed_mid_task_resumes_to_the_uninterrupted_result(tmp_path, single_thread):
     outputs, data = tmp_path / "outputs", demo_scene_copy(tmp_path / "scene")
     killed_dir = outputs / "unnamed" / "continual-ngp" / "killed"
     with (tmp_path / "killed.log").open("w") as log:
         killed = subprocess.Popen(command(outputs, data, "killed"), stdout=log, stderr=log, env=SUBPROCESS_ENV)
-        kill_when_saved(killed, killed_dir / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt")
+        signal_when_saved(killed, killed_dir / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt", signal.SIGKILL)
+        killed.wait()
     assert killed.returncode == -signal.SIGKILL
     before_kill = AccuracyMatrix.read(killed_dir / ACCURACY_MATRIX_FILENAME)
     assert (before_kill.status, before_kill.finished, len(before_kill.psnr)) == ("training", False, 1), (
@@ -88,14 +76,7 @@ def test_a_run_killed_mid_task_resumes_to_the_uninterrupted_result(tmp_path, sin
     # pixels of a closed task are never needed again: delete task 1's training images before resuming
     for frame in split_into_tasks(NUM_FRAMES, NUM_TASKS, test_interval=8).train_frames[0]:
         next(data.glob(f"*/images/frame_{frame:05d}.png")).unlink()
-    resumed = subprocess.run(
-        command(outputs, data, "resumed", "--load-dir", str(killed_dir / "nerfstudio_models")),
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=SUBPROCESS_ENV,
-    )
+    resumed = run_ns_train(command(outputs, data, "resumed", "--load-dir", str(killed_dir / "nerfstudio_models")))
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     loaded = killed_dir / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt"
     assert f"Resumingfrom{loaded}" in "".join(resumed.stdout.split()), "rich wraps long lines"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import struct
 import tracemalloc
 from pathlib import Path
@@ -10,7 +11,17 @@ from typing import List
 
 import numpy as np
 import pytest
-from helpers import HEIGHT, WIDTH, original_poses, scannet_poses, tiny_config, train, write_exported, write_sens
+from helpers import (
+    HEIGHT,
+    SCANNET_INTRINSIC,
+    WIDTH,
+    original_poses,
+    scannet_poses,
+    tiny_config,
+    train,
+    write_exported,
+    write_sens,
+)
 from PIL import Image
 
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
@@ -50,6 +61,53 @@ def test_exported_folder_poses_intrinsics_numeric_order_and_lost_frames(tmp_path
     assert np.allclose(original_poses(outputs), expected_poses(poses, kept), atol=1e-5)
     assert_intrinsics(outputs)
     assert "skipping frames whose pose is -inf (tracking lost): 3, 7-8 (3 in all)" in console_text(capsys)
+
+
+def test_a_resized_exported_copy_gets_the_colour_intrinsics_scaled_and_says_so(tmp_path, capsys):
+    folder = write_exported(tmp_path / "scene", scannet_poses(3))
+    assert_intrinsics(parse(folder))  # the colour camera's 1296x968 intrinsics, scaled to the 32x24 copies
+    intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
+    assert (
+        f"{intrinsic_file}: the images are 32x24 pixels, the calibration is for 1296x968: intrinsics scaled by "
+        "0.02469 x 0.02479"
+    ) in console_text(capsys)
+    np.savetxt(intrinsic_file, SCANNET_INTRINSIC)
+    assert_intrinsics(parse(folder, intrinsic_size=(WIDTH, HEIGHT)))
+    assert "intrinsics scaled" not in console_text(capsys), "images of the calibrated size keep the intrinsics"
+
+
+def test_exported_images_of_another_aspect_ratio_are_a_one_line_error(tmp_path):
+    folder = write_exported(tmp_path / "scene", scannet_poses(3))
+    for i in range(3):
+        Image.new("RGB", (32, 32)).save(folder / "color" / f"{i}.jpg")
+    message = (
+        f"{folder / 'intrinsic' / 'intrinsic_color.txt'}: the images are 32x32 pixels, the calibration is for "
+        "1296x968, another aspect ratio: not a resized copy; give these images' intrinsics"
+    )
+    with pytest.raises(DatasetError, match=f"^{re.escape(message)}$"):
+        parse(folder)
+
+
+@pytest.mark.parametrize(
+    "entry, value, message",
+    [
+        ((0, 0), float("nan"), "focal lengths must be finite and positive, got fx=nan fy=29"),
+        ((1, 1), -29.0, "focal lengths must be finite and positive, got fx=28 fy=-29"),
+        ((0, 2), float("inf"), "principal point cx=inf cy=11.5 lies outside the 32x24 image"),
+    ],
+)
+def test_bad_intrinsics_are_named(tmp_path, entry, value, message):
+    folder = write_exported(tmp_path / "scene", scannet_poses(3))
+    intrinsic = SCANNET_INTRINSIC.copy()
+    intrinsic[entry] = value
+    intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
+    np.savetxt(intrinsic_file, intrinsic)
+    with pytest.raises(DatasetError, match=f"^{intrinsic_file}: {message}"):
+        parse(folder, intrinsic_size=(WIDTH, HEIGHT))
+    sens = tmp_path / "scene.sens"
+    write_sens(sens, scannet_poses(3), intrinsic=intrinsic)
+    with pytest.raises(DatasetError, match=f"^{sens} header: {message}"):
+        parse(sens)
 
 
 def test_width_and_height_come_from_the_image_header(tmp_path):
@@ -225,6 +283,8 @@ def test_bad_options_are_config_errors(tmp_path):
     folder = write_exported(tmp_path / "scene", scannet_poses(3))
     with pytest.raises(ContinualConfigError, match="--frame-stride must be at least 1"):
         parse(folder, frame_stride=0)
+    with pytest.raises(ContinualConfigError, match=r"--intrinsic-size must be a width and height of at least 1"):
+        parse(folder, intrinsic_size=(0, 968))
 
 
 @pytest.mark.slow

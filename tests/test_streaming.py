@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 import subprocess
@@ -14,10 +13,9 @@ from typing import List, Optional
 
 import numpy as np
 import pytest
-from helpers import demo_parser, tiny_config
+from helpers import demo_parser, replayed, stream_config
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
-from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
 from continual_nerf.streaming.capture_folder import CaptureWatcher
@@ -115,31 +113,6 @@ class CaptureWriter(threading.Thread):
         target.write_bytes(content)
 
 
-def stream_config(run_dir: Path, capture: Path, idle: str) -> ContinualTrainerConfig:
-    """tiny_config with the streaming datamanager reading `capture`, and an even smaller model."""
-    parser = StreamDataParserConfig(
-        data=capture, frames_per_task=FRAMES_PER_TASK, poll_seconds=0.05, normalization="none", unreadable_timeout=0
-    )
-    config = tiny_config(run_dir, parser, iterations_per_task=BUDGET, rays_per_batch=64)
-    config.pipeline.datamanager = StreamingDataManagerConfig(
-        dataparser=parser,
-        iterations_per_task=BUDGET,
-        train_num_rays_per_batch=64,
-        test_interval=4,
-        idle=idle,  # type: ignore[arg-type]
-    )
-    config.pipeline.model = dataclasses.replace(
-        config.pipeline.model,
-        num_levels=4,
-        log2_hashmap_size=10,
-        max_res=32,
-        num_nerf_samples_per_ray=8,
-        num_proposal_samples_per_ray=(16,),
-    )
-    config.method_name = "continual-ngp-stream"
-    return config
-
-
 def frames_of_tasks(datamanager) -> List[List[str]]:
     """Per released task, the JSON names of its training and test frames, in capture order."""
     split = datamanager.task_split
@@ -155,7 +128,7 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
     capture = tmp_path / "capture"
     # refining trains on past the budget until the next frames come; waiting stops at the budget
     writer = CaptureWriter(capture, ahead=2 * BUDGET if idle == "refine" else BUDGET)
-    config = stream_config(tmp_path / "outputs", capture, idle)
+    config = stream_config(tmp_path / "outputs", capture, idle, FRAMES_PER_TASK, BUDGET)
     config.save_config()
     writer.start()
     trainer = config.setup(local_rank=0, world_size=1)
@@ -205,12 +178,6 @@ def test_replay_command_writes_the_protocol_and_the_stream_reads_back_the_same_c
         replay(ReplayCaptureConfig(output=capture, fps=0, dataparser=demo_parser(num_frames=12)))
 
 
-def replayed(tmp_path: Path, num_frames: int = 6) -> Path:
-    capture = tmp_path / "capture"
-    replay(ReplayCaptureConfig(output=capture, fps=0, end_marker=False, dataparser=demo_parser(num_frames=num_frames)))
-    return capture
-
-
 def test_watcher_keeps_capture_order_behind_an_unreadable_entry_and_skips_it_only_after_the_timeout(tmp_path):
     capture = replayed(tmp_path)
     image = capture / "images" / "000002.png"
@@ -225,17 +192,21 @@ def test_watcher_keeps_capture_order_behind_an_unreadable_entry_and_skips_it_onl
     assert watcher.new_entries() == [], "a skipped entry is never read again"
 
 
-def test_frame_with_bad_content_is_a_one_line_error_naming_its_file(tmp_path):
-    capture = replayed(tmp_path, num_frames=3)
-    good = (capture / "000001.json").read_text()
+def test_frames_with_bad_content_are_skipped_with_one_warning_line_each(tmp_path, capsys):
+    capture = replayed(tmp_path, num_frames=4)
+    capsys.readouterr()
     (capture / "000001.json").write_text(json.dumps({"transform_matrix": np.eye(4).tolist()}))
-    with pytest.raises(DatasetError, match=r"000001\.json: a frame needs `file_path`"):
-        CaptureWatcher(capture, unreadable_timeout=0).new_entries()
-    (capture / "000001.json").write_text(good)
     frame = json.loads((capture / "000002.json").read_text())
     (capture / "000002.json").write_text(json.dumps({**frame, "w": frame["w"] * 2}))
-    with pytest.raises(DatasetError, match=r"000002\.json: image .* is 24x18 pixels, the frame says w=48 h=18"):
-        CaptureWatcher(capture, unreadable_timeout=0).new_entries()
+    entries = CaptureWatcher(capture, unreadable_timeout=0).new_entries()
+    assert [entry.name for entry in entries] == ["000000.json", "000003.json"]
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [
+        f"{capture / '000001.json'}: a frame needs a `file_path` string (nerfstudio's transforms.json frame format); "
+        "frame skipped",
+        f"{capture / '000002.json'}: image {(capture / 'images' / '000002.png').resolve()} is 24x18 pixels, "
+        "the frame says w=48 h=18; frame skipped",
+    ]
 
 
 def test_the_pose_transform_is_fixed_by_the_first_task_and_later_frames_do_not_move_it(tmp_path):

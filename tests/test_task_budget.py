@@ -47,3 +47,16 @@ def test_checkpoint_state_round_trips_and_the_options_come_from_the_run():
     restored = TaskState()
     restored.load_state(task.state())
     assert restored.current == 3 and restored.released_tasks == 4
+
+
+def test_progress_runs_from_0_to_1_over_the_budget():
+    budget = TaskBudget(iterations=4)
+    assert budget.progress() == 0.0
+    budget.count(1.0)
+    assert budget.progress() == 0.25
+    for _ in range(5):
+        budget.count(1.0)
+    assert budget.progress() == 1.0, "refining past the budget (a capture still running) stays at 1"
+    timed = TaskBudget(iterations=1, seconds=8.0)
+    timed.count(2.0)
+    assert timed.progress() == 0.25

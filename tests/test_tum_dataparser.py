@@ -20,6 +20,7 @@ from helpers import (
     train,
     write_sequence,
 )
+from PIL import Image
 
 from continual_nerf.dataparsers.tum_dataparser import ContinualTumDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
@@ -90,6 +91,12 @@ def test_rgb_txt_out_of_time_order_is_read_in_capture_order(sequence):
     assert outputs.image_filenames == [sequence / "rgb" / f"{t:.6f}.png" for t in IMAGE_TIMES[3:]]
 
 
+def resize_images(folder: Path, size) -> None:
+    """Replace the sequence's images by plain ones of `size` (width, height), as a resized copy would have."""
+    for image in (folder / "rgb").iterdir():
+        Image.new("RGB", size, (90, 120, 150)).save(image)
+
+
 @pytest.mark.parametrize(
     "sensor,intrinsics,distortion",
     [
@@ -103,27 +110,68 @@ def test_intrinsics_and_distortion_follow_the_sensor_in_the_folder_name(
     tmp_path, capsys, sensor, intrinsics, distortion
 ):
     folder = write_sequence(tmp_path / f"rgbd_dataset_{sensor}_desk")
+    resize_images(folder, (640, 480))  # the sensor's own image size
     cameras = parse(folder).cameras
     for values, expected in zip((cameras.fx, cameras.fy, cameras.cx, cameras.cy), intrinsics):
         assert np.allclose(values.numpy(), expected)
-    assert (cameras.width == WIDTH).all() and (cameras.height == HEIGHT).all(), "size from the image header"
+    assert (cameras.width == 640).all() and (cameras.height == 480).all(), "size from the image header"
     if distortion is None:
         assert cameras.distortion_params is None
     else:
         assert np.allclose(cameras.distortion_params.numpy(), distortion), "nerfstudio order [k1, k2, k3, k4, p1, p2]"
-    warned = "no freiburg1/2/3 in the folder name; using the ROS default intrinsics" in console_text(capsys)
-    assert warned == (sensor == "kinect")
+    text = console_text(capsys)
+    assert ("no freiburg1/2/3 in the folder name; using the ROS default intrinsics" in text) == (sensor == "kinect")
+    assert "intrinsics scaled" not in text
 
 
-def test_user_intrinsics_override_the_sensor_and_silence_the_warning(tmp_path, capsys):
+def test_a_resized_copy_gets_the_sensor_intrinsics_scaled_and_says_so(tmp_path, capsys):
+    folder = write_sequence(tmp_path / "rgbd_dataset_freiburg3_desk")
+    resize_images(folder, (96, 72))
+    cameras = parse(folder).cameras
+    scale = 96 / 640
+    expected = (535.4 * scale, 539.2 * scale, 320.1 * scale, 247.6 * scale)
+    for values, value in zip((cameras.fx, cameras.fy, cameras.cx, cameras.cy), expected):
+        assert np.allclose(values.numpy(), value)
+    assert (cameras.width == 96).all() and (cameras.height == 72).all()
+    assert (
+        f"{folder} (sensor calibration): the images are 96x72 pixels, the calibration is for 640x480: "
+        "intrinsics scaled by 0.15 x 0.15"
+    ) in console_text(capsys)
+
+
+def test_images_of_another_aspect_ratio_are_a_one_line_error(tmp_path):
+    folder = write_sequence(tmp_path / "rgbd_dataset_freiburg3_desk")
+    resize_images(folder, (96, 96))
+    message = (
+        f"{folder} (sensor calibration): the images are 96x96 pixels, the calibration is for 640x480, "
+        "another aspect ratio: not a resized copy; give these images' intrinsics"
+    )
+    with pytest.raises(DatasetError) as raised:
+        parse(folder)
+    assert str(raised.value) == message
+    assert len(parse(folder, fx=14.4, fy=14.4, cx=48.0, cy=48.0).image_filenames) == 9, "unless every value is given"
+
+
+def test_user_intrinsics_are_for_the_images_as_they_are(tmp_path, capsys):
     folder = write_sequence(tmp_path / "my_capture")
     cameras = parse(folder, fx=30.0, fy=31.0, cx=16.0, cy=12.5, distortion=(0.1, -0.2, 0.003, 0.004, 0.05)).cameras
     assert np.allclose(cameras.fx.numpy(), 30.0) and np.allclose(cameras.fy.numpy(), 31.0)
     assert np.allclose(cameras.cx.numpy(), 16.0) and np.allclose(cameras.cy.numpy(), 12.5)
     assert np.allclose(cameras.distortion_params.numpy(), [0.1, -0.2, 0.05, 0.0, 0.003, 0.004])
-    assert "ROS default" not in console_text(capsys)
+    text = console_text(capsys)
+    assert "ROS default" not in text and "intrinsics scaled" not in text
     fr1 = parse(write_sequence(tmp_path / "rgbd_dataset_freiburg1_room"), fx=40.0).cameras
-    assert np.allclose(fr1.fx.numpy(), 40.0) and np.allclose(fr1.fy.numpy(), 516.5), "only the given values change"
+    assert np.allclose(fr1.fx.numpy(), 40.0), "a given value is kept"
+    assert np.allclose(fr1.fy.numpy(), 516.5 * WIDTH / 640), "the sensor's others are scaled to the 32x24 images"
+
+
+def test_a_principal_point_outside_the_images_is_a_one_line_error(sequence):
+    with pytest.raises(DatasetError) as raised:
+        parse(sequence, cx=500.0)
+    assert str(raised.value) == (
+        f"{sequence} (intrinsics): principal point cx=500 cy=12.765 lies outside the {WIDTH}x{HEIGHT} image "
+        "(intrinsics of another image size?)"
+    )
 
 
 def test_zero_length_quaternion_names_the_file_and_line(sequence):

@@ -1,132 +1,36 @@
-"""The live viewer in a real browser: headless Chromium drives the continual panel of a CPU training run."""
+"""The live viewer in a real browser: headless Chromium drives the continual panel of a CPU training run, from set-up
+to the end of training, and the viewer of a finished run (continual-nerf-viewer) task by task."""
 
 from __future__ import annotations
 
-import base64
-import itertools
-import json
+import io
 import os
-import shutil
-import socket
-import subprocess
 import threading
 import time
-import urllib.request
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, Optional
+from typing import Dict, Iterator
 
 import numpy as np
 import pytest
-import websocket
-from helpers import demo_parser, tiny_config
-from viser._messages import CameraFrustumMessage
+import torch
+from helpers import demo_parser, tiny_config, train
+from PIL import Image
+from viser._messages import CameraFrustumMessage, RemoveSceneNodeMessage
 
-from continual_nerf.core.continual_trainer import ContinualTrainer
-from continual_nerf.viewer.continual_panel import PANEL_LABEL
-from continual_nerf.viewer.task_cameras import task_colour
+from continual_nerf.bench.browser import CHROMIUM, DevTools, free_port, viewer_answers, wait_for
+from continual_nerf.checkpoints import read_checkpoint
+from continual_nerf.core import continual_trainer
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.plots import task_colour
+from continual_nerf.viewer.continual_panel import PANEL_LABEL, PROGRESS_LABEL
+from continual_nerf.viewer.pictures import ACCURACY_ALT
+from continual_nerf.viewer.run_viewer import ContinualRunViewer
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--window-size=1200,800",
-    "--remote-debugging-port=0",
-]
-"""Headless, offline, and with DevTools on a port Chromium picks (it writes it to <profile>/DevToolsActivePort)."""
 NUM_TASKS = 3
-PSNR = "Test PSNR (dB)"
-"""Label of the panel's accuracy-matrix row."""
-
-INPUT_BY_LABEL = """(label) => {
-    const element = [...document.querySelectorAll('label')].find(l => l.textContent.trim() === label);
-    if (!element) return null;
-    return document.getElementById(element.htmlFor) || element.closest('.mantine-Flex-root').querySelector('input');
-}"""
-"""The GUI input viser labels with `label`: the label's target, else the input in the label's row."""
-
-
-class DevTools:
-    """Chromium driven through the DevTools protocol over its websocket (no browser download, no Playwright)."""
-
-    def __init__(self, profile: Path) -> None:
-        self.process = subprocess.Popen(
-            [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        port = self._devtools_port(profile / "DevToolsActivePort")
-        pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
-        page = next(target for target in pages if target["type"] == "page")
-        self.socket = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60, suppress_origin=True)
-        self.ids = itertools.count(1)
-
-    def _devtools_port(self, port_file: Path) -> int:
-        deadline = time.monotonic() + 30
-        while not (port_file.exists() and port_file.read_text().strip()):
-            assert self.process.poll() is None, f"{CHROMIUM} exited with {self.process.returncode}"
-            assert time.monotonic() < deadline, f"{CHROMIUM} did not open its DevTools port"
-            time.sleep(0.1)
-        return int(port_file.read_text().split()[0])
-
-    def call(self, method: str, **params: Any) -> Dict[str, Any]:
-        number = next(self.ids)
-        self.socket.send(json.dumps({"id": number, "method": method, "params": params}))
-        while True:
-            message = json.loads(self.socket.recv())
-            if message.get("id") == number:
-                assert "error" not in message, f"{method}: {message['error']}"
-                return message["result"]
-
-    def evaluate(self, expression: str) -> Any:
-        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
-        assert "exceptionDetails" not in result, result["exceptionDetails"]
-        return result["result"].get("value")
-
-    def input_value(self, label: str) -> Optional[str]:
-        return self.evaluate(f"(() => {{ const i = ({INPUT_BY_LABEL})({json.dumps(label)}); return i && i.value; }})()")
-
-    def input_checked(self, label: str) -> bool:
-        return self.evaluate(f"({INPUT_BY_LABEL})({json.dumps(label)}).checked")
-
-    def click_input(self, label: str) -> None:
-        assert self.evaluate(f"(() => {{ ({INPUT_BY_LABEL})({json.dumps(label)}).click(); return true; }})()")
-
-    def click_button(self, text: str) -> None:
-        find = f"[...document.querySelectorAll('button')].find(b => b.textContent.trim() === {json.dumps(text)})"
-        clicked = self.evaluate(f"(() => {{ const b = {find}; if (b) b.click(); return !!b; }})()")
-        assert clicked, f"no button {text!r} on the page"
-
-    def page_text(self) -> str:
-        return self.evaluate("document.body.innerText")
-
-    def screenshot(self, path: Path) -> None:
-        path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"]))
-
-    def close(self) -> None:
-        self.socket.close()
-        self.process.terminate()
-        self.process.wait(timeout=30)
-
-
-def wait_for(what: str, condition: Callable[[], Any], timeout: float = 90.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out after {timeout:g} s waiting for {what}"
-        time.sleep(0.2)
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @pytest.fixture
@@ -141,9 +45,8 @@ def chromium(tmp_path: Path) -> Iterator[DevTools]:
     browser.close()
 
 
-@pytest.fixture
-def live_run(tmp_path: Path) -> Iterator[ContinualTrainer]:
-    """A CPU run with the viewer on 127.0.0.1, training in a thread; tasks end only when asked to."""
+def live_config(tmp_path: Path) -> ContinualTrainerConfig:
+    """A CPU run with the viewer (the continual methods' viewer defaults) on a free port; tasks end only when asked."""
     config = tiny_config(
         tmp_path / "outputs",
         demo_parser(num_frames=24, width=32, height=24),
@@ -154,34 +57,43 @@ def live_run(tmp_path: Path) -> Iterator[ContinualTrainer]:
     config.vis = "viewer"
     config.viewer.websocket_port = free_port()
     config.viewer.quit_on_train_completion = True
-    config.viewer.camera_frustum_scale = 1.0  # large enough to see in the screenshot
-    config.viewer.default_composite_depth = False  # frustums drawn over the render, not hidden in it
     config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    failure: list = []
-    thread = threading.Thread(target=lambda: _train(trainer, failure), daemon=True)
-    thread.start()
-    yield trainer
-    trainer.stop_training = True
-    thread.join(timeout=120)
-    trainer.shutdown()
-    assert not thread.is_alive() and not failure, failure
+    return config
 
 
-def _train(trainer: ContinualTrainer, failure: list) -> None:
-    try:
-        trainer.train()
-    except BaseException as error:  # reported by the fixture
-        failure.append(error)
+class InThread:
+    """A call run in a thread; `join` re-raises what it raised."""
+
+    def __init__(self, call) -> None:
+        self.failure: list = []
+        self.thread = threading.Thread(target=self._run, args=[call], daemon=True)
+        self.thread.start()
+
+    def _run(self, call) -> None:
+        try:
+            call()
+        except BaseException as error:  # re-raised by join
+            self.failure.append(error)
+
+    def join(self, timeout: float = 120) -> None:
+        self.thread.join(timeout=timeout)
+        assert not self.thread.is_alive(), "still running"
+        if self.failure:
+            raise self.failure[0]
 
 
-def frustums(trainer: ContinualTrainer) -> Dict[str, CameraFrustumMessage]:
+def frustums(viewer) -> Dict[str, CameraFrustumMessage]:
     """The camera frustums in the viser server's scene state: what every browser that connects is sent."""
-    buffer = trainer.viewer_state.viser_server._websock_server._broadcast_buffer
+    buffer = viewer.viser_server._websock_server._broadcast_buffer
     with buffer.buffer_lock:
-        messages = list(buffer.message_from_id.values())
-    return {m.name: m for m in messages if isinstance(m, CameraFrustumMessage) and m.name.startswith("/cameras/")}
+        messages = [buffer.message_from_id[number] for number in sorted(buffer.message_from_id)]
+    shown: Dict[str, CameraFrustumMessage] = {}
+    for message in messages:  # in the order sent: a removal cancels the frustum drawn before it
+        if isinstance(message, CameraFrustumMessage) and message.name.startswith("/cameras/"):
+            shown[message.name] = message
+        elif isinstance(message, RemoveSceneNodeMessage):
+            shown.pop(message.name, None)
+    return shown
 
 
 def colour_number(task: int) -> int:
@@ -189,22 +101,57 @@ def colour_number(task: int) -> int:
     return (red << 16) | (green << 8) | blue
 
 
-def look_from_above(trainer: ContinualTrainer) -> None:
-    for client in trainer.viewer_state.viser_server.get_clients().values():
-        with client.atomic():
-            client.camera.position = np.array([0.0, -14.0, 18.0])
-            client.camera.look_at = np.zeros(3)
+def pixels_of_colour(png: bytes, task: int, tolerance: int = 40) -> int:
+    """Pixels of a screenshot within `tolerance` of the task's colour in every channel."""
+    image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+    return int((np.abs(image - np.array(task_colour(task))).max(axis=-1) <= tolerance).sum())
 
 
-def test_panel_follows_tasks_and_its_controls_act_on_training(chromium, live_run, tmp_path):
-    trainer = live_run
-    datamanager = trainer.pipeline.datamanager
-    dataset = datamanager.train_dataset
-    frames_of = [set(dataset.frames_of_task(task).tolist()) for task in range(NUM_TASKS)]
-    chromium.call("Page.navigate", url=f"http://127.0.0.1:{trainer.config.viewer.websocket_port}")
-    wait_for("the panel to show task 1", lambda: chromium.input_value("Task") == f"1 of {NUM_TASKS}")
+def progress(chromium: DevTools) -> str:
+    """The panel's progress line."""
+    lines = [line for line in chromium.page_text().splitlines() if line.startswith(PROGRESS_LABEL)]
+    return lines[0][len(PROGRESS_LABEL) :].strip() if lines else ""
+
+
+def test_live_viewer_from_set_up_to_the_end_of_training(chromium, tmp_path, monkeypatch):
+    config = live_config(tmp_path)
+    url = f"http://127.0.0.1:{config.viewer.websocket_port}"
+    page_saw_set_up = threading.Event()
+    real_warm_up = continual_trainer.warm_up
+
+    def warm_up_until_seen(model, num_rays, progress, **options):
+        # set-up holds here, in the compile stage, until the page has shown it: no race with a fast set-up
+        progress("training pass 1 of 2")
+        assert page_saw_set_up.wait(timeout=120), "the page never showed the set-up stage"
+        real_warm_up(model, num_rays, progress=progress, **options)
+
+    monkeypatch.setattr(continual_trainer, "warm_up", warm_up_until_seen)
+    trainer = config.setup(local_rank=0, world_size=1)
+    set_up = InThread(trainer.setup)
+    wait_for("the viewer to answer", lambda: viewer_answers(config.viewer.websocket_port))
+    chromium.navigate(url)
+    wait_for("the panel in the set-up stage", lambda: progress(chromium).startswith("setting up: compiling"))
     assert PANEL_LABEL in chromium.page_text()
-    assert len(frustums(trainer)) == len(frames_of[0]), "only task 1's cameras are released"
+    assert chromium.input_value("Task") == f"1 of {NUM_TASKS}"
+    chromium.screenshot(tmp_path / "viewer_set_up.png")
+    page_saw_set_up.set()
+    set_up.join()
+
+    training = InThread(trainer.train)
+    try:
+        drive_live_run(chromium, trainer, tmp_path)
+    finally:
+        trainer.stop_training = True
+        training.join()
+        trainer.shutdown()
+
+
+def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path) -> None:
+    dataset = trainer.pipeline.datamanager.train_dataset
+    frames_of = [set(dataset.frames_of_task(task).tolist()) for task in range(NUM_TASKS)]
+    wait_for("training to start", lambda: progress(chromium).startswith("iteration"))
+    assert len(frustums(trainer.viewer_state)) == len(frames_of[0]), "only task 1's cameras are released"
+    assert chromium.input_value("Mean test PSNR") == "measured when task 1 ends"
 
     chromium.click_button("Next task now")
     wait_for("the panel to show task 2", lambda: chromium.input_value("Task") == f"2 of {NUM_TASKS}")
@@ -213,22 +160,25 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(chromium, live_run
         "task 2's frustums with images",
         lambda: all(
             message.image_binary is not None
-            for name, message in frustums(trainer).items()
+            for name, message in frustums(trainer.viewer_state).items()
             if int(name.split("_")[-1]) in frames_of[1]
         ),
     )
-    shown = frustums(trainer)
+    shown = frustums(trainer.viewer_state)
     assert {int(name.split("_")[-1]) for name in shown} == frames_of[0] | frames_of[1], "tasks 1 and 2, not 3"
     for name, message in shown.items():
         task = 0 if int(name.split("_")[-1]) in frames_of[0] else 1
         assert message.color == colour_number(task)
         assert (message.image_binary is not None) == (task == 1), "the open task is drawn with its images"
-        assert message.scale > trainer.config.viewer.camera_frustum_scale or task == 0, "and larger"
-    wait_for("task 1's PSNR in the panel", lambda: (chromium.input_value(PSNR) or "").startswith("after task 1: "))
-    psnr = float(chromium.input_value(PSNR).split(": ")[1])
-    assert psnr == pytest.approx(trainer.pipeline.accuracy.psnr[0][0], abs=0.01)
-    look_from_above(trainer)
-    time.sleep(3)  # the browser draws the moved view and a new render
+    wait_for("task 1's accuracy picture", lambda: ACCURACY_ALT in chromium.images())
+    first_picture = chromium.images()[ACCURACY_ALT]
+    mean = trainer.pipeline.accuracy.mean_psnr[0]
+    assert chromium.input_value("Mean test PSNR") == f"{mean:.2f} dB after task 1"
+    # the default view (framing the trajectory, frustums sized by it, not hidden by the render) shows both colours
+    wait_for(
+        "frustums of tasks 1 and 2 in the screenshot",
+        lambda: min(pixels_of_colour(chromium.screenshot_png(), task) for task in (0, 1)) >= 20,
+    )
     chromium.screenshot(tmp_path / "viewer_task2.png")
 
     chromium.click_input("Pause after this task")
@@ -236,7 +186,8 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(chromium, live_run
     chromium.click_button("Next task now")
     wait_for("training to pause after task 2", lambda: trainer.training_state == "paused")
     wait_for("the panel to show task 3", lambda: chromium.input_value("Task") == f"3 of {NUM_TASKS}")
-    assert len(frustums(trainer)) == sum(len(frames) for frames in frames_of)
+    assert len(frustums(trainer.viewer_state)) == sum(len(frames) for frames in frames_of)
+    wait_for("the accuracy picture of task 2", lambda: chromium.images().get(ACCURACY_ALT) != first_picture)
     wait_for("nerfstudio's Resume Training button", lambda: "Resume Training" in chromium.page_text())
     step = trainer.step
     time.sleep(1.0)
@@ -244,3 +195,44 @@ def test_panel_follows_tasks_and_its_controls_act_on_training(chromium, live_run
     assert not trainer.panel.pause_after_task.value, "a one-off: unticked once it paused"
     wait_for("the tick to clear on the page", lambda: not chromium.input_checked("Pause after this task"))
     chromium.screenshot(tmp_path / "viewer_paused_before_task3.png")
+
+    chromium.click_button("Resume Training")
+    chromium.click_button("Next task now")  # the last task: training ends
+    wait_for("the end of training", lambda: progress(chromium) == "training finished")
+    wait_for("the controls to be disabled", lambda: chromium.button_disabled("Next task now"))
+    assert chromium.button_disabled("Pause Training")
+    assert f"Step: {trainer.step}" in chromium.page_text(), "nerfstudio's step counter follows training"
+
+
+def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, tmp_path):
+    config = tiny_config(
+        tmp_path / "outputs", demo_parser(num_frames=24, width=32, height=24), num_tasks=2, iterations_per_task=20
+    )
+    train(config)
+    run_dir = config.get_base_dir()
+    accuracy = AccuracyMatrix.read(run_dir / ACCURACY_MATRIX_FILENAME)
+    options = ContinualViewerConfig(websocket_port=free_port())
+    travel = ContinualRunViewer(run_dir / "config.yml", viewer=options).start()
+    try:
+        chromium.navigate(f"http://127.0.0.1:{options.websocket_port}")
+        wait_for("the task slider", lambda: chromium.input_value("Task") == "2")
+        assert ACCURACY_ALT in chromium.images()
+        assert chromium.input_value("Mean test PSNR") == f"{accuracy.mean_psnr[1]:.2f} dB after task 2"
+        assert {message.color for message in frustums(travel.viewer).values()} == {colour_number(0), colour_number(1)}
+        wait_for("a render", lambda: "Resolution: 0x0px" not in chromium.page_text())
+        time.sleep(3)  # the browser draws the render
+        after_task_2 = chromium.screenshot_png()
+
+        chromium.set_slider("Task", 1)
+        end_of_task_1 = read_checkpoint(run_dir / "nerfstudio_models" / f"step-{accuracy.steps[0]:09d}.ckpt")
+        wait_for("task 1's checkpoint", lambda: travel.checkpoint.value.endswith("(end of task 1)"))
+        for name, value in travel.pipeline.model.state_dict().items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, end_of_task_1["pipeline"][f"_model.{name}"]), name
+        assert chromium.input_value("Mean test PSNR") == f"{accuracy.mean_psnr[0]:.2f} dB after task 1"
+        wait_for("task 1's render on the page", lambda: chromium.screenshot_png() != after_task_2)
+        assert {int(name.split("_")[-1]) for name in frustums(travel.viewer)} == set(
+            travel.dataset.frames_of_task(0).tolist()
+        ), "the cameras of task 1 only"
+    finally:
+        travel.viewer.viser_server.stop()

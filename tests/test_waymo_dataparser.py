@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import struct
 from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
+import torch
 from helpers import (
     CAMERAS,
     EXTRINSICS,
@@ -48,12 +51,13 @@ REAL_V2_VEHICLE_POSE = WAYMO / "v2_vehicle_pose_199_frames.parquet"
 # ---- what the generated segments must read back as (captures.py writes them) ----
 
 
-def expected_camera_to_world(pose: np.ndarray, camera: str, reference: np.ndarray) -> np.ndarray:
-    """OpenGL camera-to-world, written out from the axis facts: GL x = -y_cam, GL y = z_cam, GL z = -x_cam."""
+def expected_camera_to_world(pose: np.ndarray, camera: str) -> np.ndarray:
+    """OpenGL camera-to-world in world coordinates, written out from the axis facts: GL x = -y_cam, GL y = z_cam,
+    GL z = -x_cam."""
     waymo = pose @ EXTRINSICS[camera]
     gl = np.eye(4)
     gl[:3, 0], gl[:3, 1], gl[:3, 2] = -waymo[:3, 1], waymo[:3, 2], -waymo[:3, 0]
-    gl[:3, 3] = waymo[:3, 3] - reference
+    gl[:3, 3] = waymo[:3, 3]
     return gl
 
 
@@ -63,8 +67,7 @@ def assert_known_segment(config: WaymoDataParserConfig, pose_of, times: List[int
     frames = capture_frames(segment)
     assert segment.timestamps.tolist() == [TIMES[i] for i in times for _ in cameras]
     assert segment.cameras == [camera for _ in times for camera in cameras]
-    reference = pose_of(times[0], cameras[0])[:3, 3]
-    expected = [expected_camera_to_world(pose_of(i, camera), camera, reference) for i in times for camera in cameras]
+    expected = [expected_camera_to_world(pose_of(i, camera), camera) for i in times for camera in cameras]
     np.testing.assert_allclose(frames.camera_to_worlds, np.stack(expected), atol=1e-6)
     calibrations = np.array([intrinsic(camera) for _ in times for camera in cameras])
     np.testing.assert_allclose(np.stack([frames.fx, frames.fy, frames.cx, frames.cy], axis=1), calibrations[:, :4])
@@ -96,8 +99,7 @@ def test_real_v1_frame_has_five_cameras_as_formats_md_describes(tmp_path):
         "SIDE_RIGHT": (0, -1, 0),
     }
     frames = capture_frames(segment)
-    vehicle = segment.vehicle_to_world[0].copy()
-    vehicle[:3, 3] = 0.0  # capture_frames recentres on this very pose
+    vehicle = segment.vehicle_to_world[0]
     for camera, c2w in zip(segment.cameras, frames.camera_to_worlds):
         extrinsic = segment.calibrations[camera].camera_to_vehicle
         np.testing.assert_allclose(extrinsic[:3, 0], axes[camera], atol=0.04)
@@ -193,6 +195,27 @@ def test_parser_outputs_are_the_segment_normalised(tmp_path):
         offsets, outputs.dataparser_scale * np.linalg.norm(relative[:, :3, 3], axis=1), atol=1e-5
     )
     assert outputs.cameras.distortion_params.shape == (NUM_TIMES * len(CAMERAS), 6)
+    names = capture_frames(read_segment(parser_config))
+    assert outputs.metadata["camera_id"].tolist() == names.camera_id.tolist(), "which camera took each image"
+    assert set(outputs.metadata["camera_id"].tolist()) == {CAMERA_IDS[name] for name in CAMERAS}
+
+
+def test_the_stored_transform_maps_back_to_waymo_world_coordinates(tmp_path):
+    """Exported geometry lands in world coordinates: the saved transform is the whole one, in float64."""
+    outputs = config(write_v2(tmp_path / "waymo"), tmp_path / "cache").setup().get_dataparser_outputs(split="train")
+    world = np.stack([expected_camera_to_world(fixture_pose(i, c), c) for i in range(NUM_TIMES) for c in CAMERAS])
+    assert np.abs(world[:, :3, 3]).max() > 25000, "tens of km from Waymo's world origin"
+    assert outputs.dataparser_transform.dtype == torch.float64
+    # as ns-export --save-world-frame maps points back: float32 poses in, the stored transform applied
+    back = outputs.transform_poses_to_original_space(outputs.cameras.camera_to_worlds, "opengl").numpy()
+    np.testing.assert_allclose(back, world[:, :3], atol=1e-4)
+    # as any other tool would from the run's dataparser_transforms.json
+    outputs.save_dataparser_transform(tmp_path / "dataparser_transforms.json")
+    saved = json.loads((tmp_path / "dataparser_transforms.json").read_text())
+    to_box = np.vstack([np.array(saved["transform"]), [0, 0, 0, 1]])
+    in_box = outputs.cameras.camera_to_worlds.double().numpy()
+    in_box[:, :, 3] /= saved["scale"]
+    np.testing.assert_allclose(np.linalg.inv(to_box) @ np.concatenate([in_box, world[:, 3:]], axis=1), world, atol=1e-4)
 
 
 # ---- bad input ----
@@ -235,10 +258,46 @@ def test_parquet_file_missing_a_column_is_named(tmp_path, component, column):
     expect_error(DatasetError, f"{data / component / SEGMENT}.parquet: missing column {column}", config(data, tmp_path))
 
 
-def test_missing_calibration_of_a_chosen_camera_is_named(tmp_path):
-    data = tmp_path / "segment.tfrecord"
-    data.write_bytes(tfrecord([v1_frame(0, ["FRONT", "SIDE_LEFT"])]))
-    expect_error(DatasetError, f"{data}: no calibration for camera FRONT_LEFT", config(data, tmp_path))
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_by_default_the_cameras_the_segment_has_are_used_and_logged(tmp_path, capsys, version):
+    cameras = ["FRONT", "SIDE_LEFT"]
+    if version == "v1":
+        data = tmp_path / "segment.tfrecord"
+        data.write_bytes(tfrecord([v1_frame(i, cameras) for i in range(NUM_TIMES)]))
+        calibrated_in = data
+    else:
+        data = write_v2(tmp_path / "waymo", cameras=cameras)
+        calibrated_in = data / "camera_calibration" / f"{SEGMENT}.parquet"
+    assert_known_segment(config(data, tmp_path / "cache"), fixture_pose, list(range(NUM_TIMES)), cameras)
+    logged = " ".join(capsys.readouterr().out.split())
+    assert f"{calibrated_in}: using the segment's cameras FRONT, SIDE_LEFT (--cameras chooses)" in logged
+    expect_error(
+        DatasetError,
+        f"{calibrated_in}: no calibration for camera FRONT_LEFT",
+        config(data, tmp_path, cameras=("FRONT", "FRONT_LEFT")),
+    )
+
+
+@pytest.mark.parametrize(
+    "column, value, message",
+    [
+        (0, 0.0, "focal lengths must be finite and positive, got fx=0 fy=23"),
+        (2, float("nan"), "principal point cx=nan cy=6 lies outside the 16x12 image"),
+    ],
+)
+def test_bad_intrinsics_of_a_chosen_camera_are_named(tmp_path, column, value, message):
+    data = write_v2(tmp_path / "waymo")
+    path = data / "camera_calibration" / f"{SEGMENT}.parquet"
+    table = pq.read_table(path)
+    values = table.column(INTRINSIC[column]).to_pylist()
+    values[CAMERAS.index("FRONT_LEFT")] = value
+    pq.write_table(table.set_column(table.schema.get_field_index(INTRINSIC[column]), INTRINSIC[column], [values]), path)
+    with pytest.raises(DatasetError) as raised:
+        config(data, tmp_path).setup().get_dataparser_outputs(split="train")
+    assert str(raised.value).startswith(f"{path} (FRONT_LEFT calibration): {message}")
+    assert len(read_segment(config(data, tmp_path, cameras=("FRONT",))).image_filenames) == NUM_TIMES, (
+        "only the chosen cameras' calibrations matter"
+    )
 
 
 def test_corrupt_tfrecord_length_and_data_are_named(tmp_path):

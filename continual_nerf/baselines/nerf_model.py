@@ -40,6 +40,10 @@ class ContinualNeRFModelConfig(ValidatedConfig, VanillaModelConfig):
 
     def validate(self) -> None:
         super().validate()
+        if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
+            raise ContinualConfigError(
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {self.eval_num_rays_per_chunk}"
+            )
         layers = self.base_mlp_num_layers
         if not all(1 <= skip <= layers - 2 for skip in self.skip_connections):
             # nerfstudio's MLP builds the wider layer only there, and fails at the first batch otherwise

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Iterable, Literal
 
 from nerfstudio.configs.method_configs import method_configs as nerfstudio_methods
 from nerfstudio.engine.trainer import TrainerConfig
@@ -15,6 +16,26 @@ from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import quiet_config
 
 Device = Literal["cpu", "cuda"]
+
+
+@dataclass
+class DemoBenchmark:
+    """Options every benchmark that trains on the demo scenes has."""
+
+    rays_per_batch: int = 1024
+    """Rays per training batch (the paper's 1024)."""
+    device: Device = "cpu"
+    """Device every run trains on."""
+    data: Path = Path("data/continual-demo")
+    """Where the demo scenes are generated (and reused from)."""
+
+
+def check_names(option: str, chosen: Iterable[str], known: Iterable[str]) -> None:
+    """Exit with one line naming the chosen names that are not known ones."""
+    known = list(known)
+    unknown = [name for name in chosen if name not in known]
+    if unknown:
+        raise SystemExit(f"--{option}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
 
 
 def on_demo(

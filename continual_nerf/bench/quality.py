@@ -23,6 +23,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
+from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -112,7 +113,7 @@ class RunSummary:
 
 
 @dataclass
-class QualityBenchmark:
+class QualityBenchmark(DemoBenchmark):
     """Trains every recipe on both built-in scenes at each setting and prints how each compares to the joint bound."""
 
     scenes: Tuple[Literal["room", "street"], ...] = ("room", "street")
@@ -121,19 +122,11 @@ class QualityBenchmark:
     """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
     recipes: Tuple[str, ...] = tuple(RECIPES)
     """Which of the recipes to train (names as the tables print them)."""
-    rays_per_batch: int = 1024
-    """Rays per training batch (the paper's 1024)."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device every run trains on."""
-    data: Path = Path("data/continual-demo")
-    """Where the demo scenes are generated (and reused from)."""
     output_dir: Path = Path("outputs/bench-quality")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
     def main(self) -> None:
-        unknown = [name for name in self.recipes if name not in RECIPES]
-        if unknown:
-            raise SystemExit(f"--recipes: unknown {', '.join(unknown)} (known: {', '.join(RECIPES)})")
+        check_names("recipes", self.recipes, RECIPES)
         results: Dict[str, Dict[str, Dict[str, dict]]] = {}
         for scene in self.scenes:
             for setting in map(Setting.parse, self.settings):

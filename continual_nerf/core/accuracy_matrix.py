@@ -11,7 +11,7 @@ from continual_nerf.atomic_files import write_text_atomically
 
 ACCURACY_MATRIX_FILENAME = "accuracy_matrix.json"
 
-RunStatus = Literal["training", "finished", "failed"]
+RunStatus = Literal["training", "finished", "failed", "interrupted"]
 
 
 @dataclass
@@ -30,7 +30,8 @@ class AccuracyMatrix:
     finished: bool = False
     """Whether every task was trained; a run cut short leaves this false."""
     status: RunStatus = "training"
-    """training: tasks remain (a killed run stays so); finished: every task trained; failed: ended by an error."""
+    """training: tasks remain (a killed run stays so); finished: every task trained; failed: ended by an error;
+    interrupted: stopped by Ctrl-C or SIGTERM after saving a checkpoint to resume from."""
 
     def add_row(self, psnr: List[float], ssim: List[float], mean_psnr: float, step: int) -> None:
         self.psnr.append(psnr)

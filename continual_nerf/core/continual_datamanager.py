@@ -27,7 +27,8 @@ from nerfstudio.model_components.ray_generators import RayGenerator
 
 from continual_nerf.core.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
-from continual_nerf.core.task_split import TaskSplit, split_into_tasks
+from continual_nerf.core.per_frame import TRAINING_FRAME
+from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_into_tasks
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
@@ -116,6 +117,10 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 f"--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got {self.train_num_rays_per_batch}"
             )
 
+    def frames_known_at_start(self) -> bool:
+        """Whether every training frame is known when training starts (per-frame codes and poses need it)."""
+        return True
+
     def budgeted_iterations(self) -> Optional[int]:
         """Iterations the whole task budget takes, or None when tasks are timed (or, streaming, counted by the capture)."""
         if self.seconds_per_task is not None:
@@ -142,6 +147,21 @@ def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> Dataparser
         mask_filenames=None if outputs.mask_filenames is None else pick(outputs.mask_filenames),
         metadata={key: pick(value) for key, value in outputs.metadata.items()},
     )
+
+
+def camera_ids(outputs: DataparserOutputs) -> np.ndarray:
+    """Which camera took each frame: the dataparser's `camera_id`, else frames with the same intrinsics are one camera."""
+    if "camera_id" in outputs.metadata:
+        return np.asarray(outputs.metadata["camera_id"], dtype=np.int64)
+    cameras = outputs.cameras
+    intrinsics = torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width, cameras.height], dim=-1)
+    return np.unique(intrinsics.double().numpy(), axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def capture_instants(outputs: DataparserOutputs) -> np.ndarray:
+    """The capture instant of each frame: the dataparser's `time_group` (a rig), else its place in capture order."""
+    time_group = outputs.metadata.get("time_group")
+    return np.arange(len(outputs.image_filenames)) if time_group is None else np.asarray(time_group)
 
 
 class ContinualDataManager(VanillaDataManager):
@@ -201,18 +221,23 @@ class ContinualDataManager(VanillaDataManager):
             time_group=outputs.metadata.get("time_group"),
         )
         task_of_frame = self.task_split.train_task_of_frame()
+        frames = self.task_split.all_train_frames()
         return ContinualDataset(
-            subset_outputs(outputs, self.task_split.all_train_frames()),
+            subset_outputs(outputs, frames),
             np.zeros_like(task_of_frame) if self.config.joint else task_of_frame,  # joint: one task holds every frame
             scale_factor=self._image_scale(),
             for_training=self.test_mode == "val",
+            camera_of_frame=camera_ids(outputs)[frames],
         )
 
     def create_eval_dataset(self) -> TestFrameDataset:
-        return TestFrameDataset(
-            subset_outputs(self.train_dataparser_outputs, self.task_split.all_test_frames()),
-            scale_factor=self._image_scale(),
-        )
+        """The test frames; each is rendered with the appearance code and pose correction of the training frame of
+        its task and camera nearest to it in time (its cameras' TRAINING_FRAME metadata reaches the rays)."""
+        outputs = self.train_dataparser_outputs
+        test_outputs = subset_outputs(outputs, self.task_split.all_test_frames())
+        nearest = nearest_train_frames(self.task_split, capture_instants(outputs), camera_ids(outputs))
+        test_outputs.cameras.metadata = {TRAINING_FRAME: torch.from_numpy(nearest)[:, None]}
+        return TestFrameDataset(test_outputs, scale_factor=self._image_scale())
 
     def setup_train(self) -> None:
         # no task opens here: a resumed run learns its task from the checkpoint, and must not read closed tasks' pixels

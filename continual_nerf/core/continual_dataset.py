@@ -13,7 +13,9 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from PIL import Image, UnidentifiedImageError
 
+from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.untrusted_files import check_regular
 
 IMAGE_MODES = ("L", "RGB", "RGBA")
 """PIL modes of the images nerfstudio's InputDataset decodes correctly."""
@@ -29,6 +31,7 @@ class ContinualDataset(InputDataset):
     Camera rays (poses and intrinsics) of every frame stay available: the continual setting allows
     rays of past tasks. Pixels of a task are loaded when it opens and dropped when it closes; reading
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
+    The task and camera of every frame are in its metadata, which nerfstudio hands to the model.
     """
 
     def __init__(
@@ -37,9 +40,13 @@ class ContinualDataset(InputDataset):
         task_of_frame: np.ndarray,
         scale_factor: float = 1.0,
         for_training: bool = True,
+        camera_of_frame: Optional[np.ndarray] = None,
     ):
         super().__init__(dataparser_outputs, scale_factor=scale_factor)
         self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
+        self.metadata[FRAME_TASK] = self.task_of_frame
+        cameras = np.zeros_like(task_of_frame) if camera_of_frame is None else camera_of_frame
+        self.metadata[FRAME_CAMERA] = torch.as_tensor(cameras, dtype=torch.long)
         self.for_training = for_training
         """False once training is over (ns-eval, ns-render, ns-viewer): then every frame is readable."""
         self.open_task: Optional[int] = None
@@ -91,8 +98,11 @@ def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
     """nerfstudio's image read, with a missing, unreadable, truncated or mis-sized file reported by name in one line."""
     filename = dataset._dataparser_outputs.image_filenames[image_idx]
     try:
+        check_regular(filename)  # nerfstudio opens the file by name: a FIFO put there would block it
         image = InputDataset.get_numpy_image(dataset, image_idx)
-    except (OSError, UnidentifiedImageError, ValueError, AssertionError) as error:
+    except DatasetError:
+        raise
+    except (OSError, UnidentifiedImageError, ValueError, AssertionError, Image.DecompressionBombError) as error:
         raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
     # the flat pixel numbering of a task assumes every image has its camera's size
     check_size(filename, (image.shape[1], image.shape[0]), dataset.cameras, image_idx)
@@ -105,9 +115,10 @@ def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
     for frame in frames:
         filename = dataset._dataparser_outputs.image_filenames[frame]
         try:
+            check_regular(filename)
             with Image.open(filename) as image:
                 size, mode = image.size, image.mode
-        except (OSError, UnidentifiedImageError) as error:
+        except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
             raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
         # nerfstudio reads other modes wrongly (palette indices as grey) or not at all (16-bit, two channels)
         if mode not in IMAGE_MODES:

@@ -11,6 +11,7 @@ from typing import Any, Dict, List, Literal, Mapping, Optional, Type
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import writer
@@ -23,14 +24,19 @@ from continual_nerf.core.continual_datamanager import ContinualDataManager, Cont
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
-from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
+from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import world_size_for_vanilla_pipeline
 from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
 """State-dict keys of the replay oracle's frozen copy in a checkpoint."""
+BASE_LR_KEY = "continual_base_lr"
+"""Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
+POSE_GROUP = "camera_opt"
+"""nerfacto's parameter group of the pose corrections."""
 
 
 @dataclass
@@ -42,6 +48,25 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     """Splits the trajectory into tasks and serves the released tasks' rays and pixels."""
     model: ContinualNGPModelConfig = field(default_factory=ContinualNGPModelConfig)
     """The hash-grid model trained with Eq. 4."""
+    lr_decay_per_task: float = 1.0
+    """Factor every learning rate falls to, exponentially, over each task's budget, restarting at the next task;
+    1 keeps it constant (the paper)."""
+    pose_lr_decay_per_task: float = 0.1
+    """Factor the pose corrections' learning rate (--pipeline.model.camera-optimizer.mode) falls to over each task's
+    budget instead: a task's frames refine anew, from nerfacto's 1e-3 down to its final 1e-4; 1 keeps it constant."""
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("lr_decay_per_task", "pose_lr_decay_per_task"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in (0, 1], got {value}")
+        learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
+        if learns_per_frame and not self.datamanager.frames_known_at_start():
+            raise ContinualConfigError(
+                "--pipeline.model.use-appearance-embedding and --pipeline.model.camera-optimizer.mode need every "
+                "frame known when training starts; this datamanager receives frames while it trains"
+            )
 
 
 @dataclass(frozen=True)
@@ -58,6 +83,8 @@ class ContinualStatus:
     """The open task's budget: what is left, or what training does once it is spent."""
     psnr_rows: List[List[float]]
     """The accuracy matrix so far: test PSNR per task after each finished task."""
+    mean_psnr: List[float]
+    """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
     """Whether the run has trained its last task."""
 
@@ -92,6 +119,7 @@ class ContinualPipeline(VanillaPipeline):
             self.datamanager.replay_buffer = self.replay_buffer
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
+        self._open_frame_parameters(start=True)
 
     @property
     def replays(self) -> bool:
@@ -121,6 +149,7 @@ class ContinualPipeline(VanillaPipeline):
             capture_running=not self.datamanager.capture_finished,
             progress=progress,
             psnr_rows=[list(row) for row in self.accuracy.psnr],
+            mean_psnr=list(self.accuracy.mean_psnr),
             finished=self.accuracy.finished,
         )
 
@@ -149,13 +178,29 @@ class ContinualPipeline(VanillaPipeline):
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        trainer = training_callback_attributes.trainer
-        assert trainer is not None
+        trainer, optimizers = training_callback_attributes.trainer, training_callback_attributes.optimizers
+        assert trainer is not None and optimizers is not None
+        before = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION
+        decay = [TrainingCallback([before], self._decay_learning_rates, args=[optimizers])]
+        decays = self.config.lr_decay_per_task < 1 or (
+            self.config.pose_lr_decay_per_task < 1 and POSE_GROUP in optimizers.optimizers
+        )
         return super().get_training_callbacks(training_callback_attributes) + [
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._start_clock),
+            *(decay if decays else []),
+            TrainingCallback([before], self._start_clock),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration, args=[trainer]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._print_summary),
         ]
+
+    def _decay_learning_rates(self, optimizers: Optimizers, step: int) -> None:
+        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task), the pose
+        corrections' times pose_lr_decay_per_task ** (progress through the task)."""
+        for name, optimizer in optimizers.optimizers.items():
+            decay = self.config.pose_lr_decay_per_task if name == POSE_GROUP else self.config.lr_decay_per_task
+            factor = decay ** self.budget.progress()
+            for group in optimizer.param_groups:
+                group.setdefault(BASE_LR_KEY, group["lr"])  # in the optimizer's state: a resumed run keeps it
+                group["lr"] = group[BASE_LR_KEY] * factor
 
     def _start_clock(self, step: int) -> None:
         self._clock_started = time.perf_counter()
@@ -183,7 +228,7 @@ class ContinualPipeline(VanillaPipeline):
         else:
             self.open_next_task()
             if distributed.is_main():
-                CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} released at step {step + 1}")
+                CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} starts at step {step + 1}")
         trainer.save_checkpoint(step)
         distributed.barrier()  # the other ranks wait while rank 0 evaluates and checkpoints
 
@@ -208,6 +253,12 @@ class ContinualPipeline(VanillaPipeline):
         self.task.current += 1
         self.budget.start_task()
         self.datamanager.release(self.task.current)
+        self._open_frame_parameters(start=True)
+
+    def _open_frame_parameters(self, start: bool) -> None:
+        """Let the model learn the appearance codes and pose corrections of the open task's frames only."""
+        if isinstance(self.model, ContinualNGPModel):
+            self.model.open_task(self.datamanager.data_task, start)
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
@@ -238,7 +289,7 @@ class ContinualPipeline(VanillaPipeline):
         )
         writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
         CONSOLE.print(
-            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step + 1}: "
+            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
             f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
         )
 
@@ -256,7 +307,9 @@ class ContinualPipeline(VanillaPipeline):
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
         if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
             self.replay_oracle.update(self.model)  # builds the copy the saved weights go into
-        return super().load_state_dict(state_dict, strict)
+        result = super().load_state_dict(state_dict, strict)
+        self._open_frame_parameters(start=False)  # the loaded task continues with the loaded codes and poses
+        return result
 
     def checkpoint_state_dict(self) -> Dict[str, Any]:
         """The state dict with the model's keys as one process has them (no DDP `module.`): any number of processes

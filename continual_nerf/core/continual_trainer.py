@@ -4,18 +4,24 @@ panel in the viewer."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Type
+from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.utils.writer import EventName
 from nerfstudio.viewer.viewer import Viewer
 
+from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
+    check_method,
     checkpoint_steps,
     find_checkpoint,
     read_checkpoint,
@@ -27,10 +33,13 @@ from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, first_line
-from continual_nerf.nerfstudio_compat import launch_processes_here, set_resume_step
+from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
+from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
+from continual_nerf.nerfstudio_compat import first_step, launch_processes_here, leave_pause, set_resume_step
+from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
@@ -47,6 +56,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False
     """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
+    viewer: ContinualViewerConfig = field(default_factory=ContinualViewerConfig)
+    """nerfstudio's viewer with the continual panel: the released tasks' cameras, the accuracy matrix, controls."""
 
     def validate(self) -> None:
         super().validate()
@@ -57,10 +68,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
             raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
 
     def setup(self, **kwargs: Any) -> Any:
-        try:
+        with one_line_exit(self.method_name):
             return super().setup(**kwargs)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.method_name}: error: {error}") from None
 
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes from, if any."""
@@ -69,25 +78,57 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
 
     def save_config(self) -> None:
-        """nerfstudio's config.yml, refused in a folder holding another run's results: they would be overwritten.
+        """Claim the run folder for the run's life, then write nerfstudio's config.yml there, unless the folder holds
+        another run's results (they would be overwritten); temporary files of killed saves are removed.
 
         `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
-        (CPU processes, one-line errors).
+        (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
         if self.machine.num_devices * self.machine.num_machines > 1:
             launch_processes_here()
-        base_dir = self.get_base_dir()
-        source = self.resume_source()
-        continuing_in_place = source is not None and source.resolve() == base_dir.resolve()
+        if self.machine.machine_rank > 0:
+            return
+        base_dir, source = self.get_base_dir(), self.resume_source()
+        with one_line_exit(self.method_name):
+            previous = claim_run_folder(base_dir)
+            if previous is not None:
+                CONSOLE.print(
+                    f"{base_dir}: process {previous}, which held it, is no longer running", markup=False, soft_wrap=True
+                )
+            if self._holds_another_run(base_dir, source):
+                release_run_folder(base_dir)
+                raise ContinualConfigError(
+                    f"{base_dir} already holds a run; choose another --timestamp or --experiment-name, or continue "
+                    f"that run with --load-dir {self.get_checkpoint_dir()}"
+                )
+            super().save_config()
+        for folder in (base_dir, source):
+            for stale in remove_stale_partials(folder) if folder is not None else []:
+                CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
+
+    def _holds_another_run(self, base_dir: Path, source: Optional[Path]) -> bool:
+        """Whether `base_dir` holds results of a run this one does not continue."""
         holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
-            self.get_checkpoint_dir().is_dir() and checkpoint_steps(self.get_checkpoint_dir())
+            self.get_checkpoint_dir().is_dir() and bool(checkpoint_steps(self.get_checkpoint_dir()))
         )
-        if holds_a_run and not continuing_in_place:
-            raise SystemExit(
-                f"{self.method_name}: error: {base_dir} already holds a run; choose another --timestamp or "
-                f"--experiment-name, or continue that run with --load-dir {self.get_checkpoint_dir()}"
-            )
-        super().save_config()
+        return holds_a_run and not (source is not None and source.resolve() == base_dir.resolve())
+
+
+@contextlib.contextmanager
+def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
+    """End the process with one line for bad input (an option, a dataset file, an image of a task released mid-run)
+    or a file it cannot write, nerfstudio's own included; anything else keeps its traceback, which is worth seeing."""
+    try:
+        yield
+    except Exception as error:
+        cause = os_error_of(error)
+        if isinstance(error, ContinualNerfError):
+            line = str(error)
+        elif cause is not None and cause.filename is not None:
+            line = f"{cause.filename}: {describe(cause)}"
+        else:
+            raise
+        raise SystemExit(f"{method_name}: error: {line}") from None
 
 
 class ContinualTrainer(Trainer):
@@ -100,30 +141,71 @@ class ContinualTrainer(Trainer):
         super().__init__(config, local_rank, world_size)
         self.panel: Optional[ContinualPanel] = None
         """The viewer's continual-learning panel, when the viewer runs."""
+        self._resumed_from: Optional[Path] = None
+        """The checkpoint folder this run resumed from, if any."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
+        try:
+            self._set_up(test_mode)
+        finally:
+            INTERRUPTS.restore()  # train() installs them again: a trainer only set up leaves no handler behind
+        location = TrainingCallbackLocation
+        self.callbacks += [
+            TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
+            TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
+        ]
+        if distributed.is_distributed():  # after the panel's: a pause it starts at a task's end holds every rank
+            self.callbacks.append(
+                TrainingCallback([location.AFTER_TRAIN_ITERATION], distributed.hold_while_paused, args=[self])
+            )
+
+    def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
         self.config.max_num_iterations = self._iterations_to_run()
+        if self.config.max_num_iterations == UNBOUNDED_ITERATIONS:  # no end known: an ETA would count to the cap
+            writer_config = self.config.logging.local_writer
+            writer_config.stats_to_track = tuple(s for s in writer_config.stats_to_track if s != EventName.ETA)
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        try:
+        with one_line_exit(self.config.method_name):
             super().setup(test_mode)
-        except ContinualNerfError as error:
-            raise SystemExit(f"{self.config.method_name}: error: {error}") from None
-        warm_up(self.pipeline.model, self.config.pipeline.datamanager.train_num_rays_per_batch)
         if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
             # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
             self.viewer_state.viser_server.stop()
             self.viewer_state = None
         if isinstance(self.viewer_state, Viewer):
-            pipeline = self.pipeline
-            self.panel = ContinualPanel(
-                pipeline.status, pipeline.request_next_task, lambda: pipeline.datamanager.train_dataset
+            self.panel = self._install_panel(self.viewer_state)
+        show_stage = self.panel.show_stage if self.panel is not None else lambda stage: None
+        warm_up(
+            self.pipeline.model,
+            self.config.pipeline.datamanager.train_num_rays_per_batch,
+            progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
+        )
+        show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    def _install_panel(self, viewer: Viewer) -> ContinualPanel:
+        """The continual panel, in the viewer from the moment it answers (before the model compiles)."""
+        pipeline = self.pipeline
+        panel = ContinualPanel(
+            pipeline.status,
+            pipeline.request_next_task,
+            lambda: pipeline.datamanager.train_dataset,
+            self.config.viewer,
+        )
+        panel.install(viewer, self.training_state)
+        self.callbacks += panel.training_callbacks(self)
+        return panel
+
+    def _check_viewer_warnings(self) -> None:
+        # nerfstudio's note says no evaluation runs with the viewer alone: its periodic evaluation does not, but the
+        # accuracy matrix is measured at the end of every task whatever --vis says
+        if self.config.is_viewer_enabled() and not self.config.is_tensorboard_enabled():
+            CONSOLE.print(
+                "[NOTE] The test PSNR of every task is measured at the end of each task (viewer panel, "
+                "accuracy_matrix.json); --vis viewer+tensorboard also logs the losses and nerfstudio's periodic "
+                "evaluation."
             )
-            self.callbacks += self.panel.training_callbacks(self)
-        if distributed.is_distributed():  # last: a pause the panel starts at a task's end holds every rank
-            location = TrainingCallbackLocation.AFTER_TRAIN_ITERATION
-            self.callbacks.append(TrainingCallback([location], distributed.hold_while_paused, args=[self]))
 
     def _iterations_to_run(self) -> int:
         """The task budget's iterations (a generous cap when tasks are timed or streamed), or --max-num-iterations."""
@@ -137,18 +219,60 @@ class ContinualTrainer(Trainer):
         return cap
 
     def train(self) -> None:
+        INTERRUPTS.install()
+        # a signal while the viewer has paused training: the next iteration must come, to answer it
+        INTERRUPTS.deferring, INTERRUPTS.on_signal = True, lambda: leave_pause(self)
+        try:
+            with one_line_exit(self.config.method_name):
+                self._train_saying_so_if_it_fails()
+        finally:
+            INTERRUPTS.restore()
+            release_run_folder(self.base_dir)
+
+    def _answer_interrupt(self, step: int) -> None:
+        """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
+        resume it and exit with 128 + the signal."""
+        # several processes stop at the same step, the one rank 0 received its signal before
+        number = distributed.decided_by_main(INTERRUPTS.received or 0, self.pipeline.device)
+        if not number:
+            return
+        if not distributed.is_main():
+            raise SystemExit(EXIT_CODES[number])  # rank 0 saves, writes and says how to resume
+        if step > first_step(self):
+            self.save_checkpoint(step - 1)
+            how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
+        elif self._resumed_from is not None:
+            how = f"no step trained since resuming; resume with: {resume_command(self._resumed_from, sys.argv)}"
+        else:
+            how = "no step trained yet, nothing to resume"
+        self.pipeline.accuracy.status = "interrupted"
+        self.pipeline.accuracy.write(self.base_dir)
+        print(
+            f"{self.config.method_name}: interrupted by {signal.Signals(number).name}: {how}",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(EXIT_CODES[number])
+
+    def _after_last_step(self, step: int) -> None:
+        """Training is over and saved: from now on a signal (the viewer may stay open) ends the process at once."""
+        INTERRUPTS.deferring = False
+        if INTERRUPTS.received is not None:
+            print(f"{self.config.method_name}: interrupted after its last step; the run is complete", file=sys.stderr)
+            raise SystemExit(EXIT_CODES[INTERRUPTS.received])
+
+    def _train_saying_so_if_it_fails(self) -> None:
         accuracy = self.pipeline.accuracy
         main = distributed.is_main()  # rank 0 alone writes results
-        if main:
-            accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
         try:
+            if main:
+                accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, however it ends
             super().train()
-        except Exception as error:
+        except Exception:
             if main and not accuracy.finished:
                 accuracy.status = "failed"
-                accuracy.write(self.base_dir)
-            if isinstance(error, ContinualNerfError):  # for instance an image of a task released mid-run
-                raise SystemExit(f"{self.config.method_name}: error: {error}") from None
+                with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
+                    accuracy.write(self.base_dir)
             raise
 
     def _load_checkpoint(self) -> None:
@@ -160,17 +284,33 @@ class ContinualTrainer(Trainer):
         else:
             return super()._load_checkpoint()
         state = read_checkpoint(path)
+        self._resumed_from = path.parent
+        check_method(state, path, self.config.method_name)
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
+        self._check_budget_reaches(state["step"], path)
         if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
             restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
-            f"Resuming from {path} at step {self._start_step}: task {pipeline.task.current + 1}/"
+            f"Resuming from {path} at step {first_step(self)}: task {pipeline.task.current + 1}/"
             f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
+        )
+
+    def _check_budget_reaches(self, step: int, path: Path) -> None:
+        """Refuse a checkpoint at or past the last step this run has: nerfstudio's loop would not run at all."""
+        total = self.config.max_num_iterations
+        assert total is not None, "setup() sets it before loading"
+        if step + 1 < total:
+            return
+        datamanager = self.config.pipeline.datamanager
+        raise CheckpointError(
+            f"{path}: is at step {step}, beyond the {total} iterations this run has (--pipeline.datamanager."
+            f"iterations-per-task {datamanager.iterations_per_task} for {datamanager.num_tasks} tasks, or "
+            "--max-num-iterations); resume with the options it was trained with"
         )
 
     def _load_states(self, state: Dict[str, Any], path: Path) -> None:
@@ -201,6 +341,7 @@ class ContinualTrainer(Trainer):
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
             "step": step,
+            "method": self.config.method_name,
             "pipeline": self.pipeline.checkpoint_state_dict(),
             "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
@@ -209,8 +350,7 @@ class ContinualTrainer(Trainer):
         }
 
     def _init_viewer_state(self) -> None:
-        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown
-        if isinstance(self.viewer_state, Viewer) and self.panel is not None:
-            self.panel.attach(self.viewer_state, self)
-        else:
+        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown, and
+        # the panel drew them when it was installed at set-up
+        if self.panel is None:
             super()._init_viewer_state()

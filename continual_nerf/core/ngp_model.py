@@ -4,16 +4,35 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Dict, Tuple, Type
+from typing import Dict, List, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
 from continual_nerf.core.distillation_loss import distillation_loss
+from continual_nerf.core.per_frame import (
+    FRAME_CAMERA,
+    FRAME_TASK,
+    TRAINING_FRAME,
+    AppearanceGroups,
+    FrameCodes,
+    OpenTaskRows,
+    code_of_frame,
+    refine_rays,
+)
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.nerfstudio_compat import proposal_sampler_state, set_proposal_sampler_state, without_lpips
+from continual_nerf.nerfstudio_compat import (
+    appearance_codes,
+    codes_looked_up_per_ray,
+    proposal_sampler_state,
+    set_appearance_codes,
+    set_proposal_sampler_state,
+    without_lpips,
+)
 from continual_nerf.validated_config import ValidatedConfig
 
 
@@ -39,13 +58,18 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     num_nerf_samples_per_ray: int = 32
     """Samples per ray the field is evaluated at."""
     use_appearance_embedding: bool = False
-    """Per-image appearance codes; off because images of future tasks have no code to learn yet."""
+    """Appearance codes (exposure, white balance, camera response): one per --appearance-codes group, learned while its
+    task is open, frozen when it closes; off: the paper."""
+    appearance_codes: AppearanceGroups = "image"
+    """What one appearance code covers: one training image, or every image one camera took in one task."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
-    """Pose refinement; off because the paper trains on ground-truth poses."""
+    """Pose refinement (SO3xR3 or SE3): the open task's frames get learnable pose corrections, frozen when it closes;
+    off: the paper, which trains on ground-truth poses."""
     compile: bool = True
     """Run the hash grids and MLPs through torch.compile (eager, after a one-line notice, where it cannot compile)."""
     detach_sample_positions: bool = True
-    """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only."""
+    """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only (and pose
+    refinement, which keeps it)."""
     replay_sample_fraction: float = 1.0
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
     1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
@@ -56,6 +80,15 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
             )
+        if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
+            raise ContinualConfigError(
+                f"--pipeline.model.eval-num-rays-per-chunk must be at least 1, got {self.eval_num_rays_per_chunk}"
+            )
+
+    @property
+    def learns_per_frame(self) -> bool:
+        """Whether the model learns parameters per training frame (appearance codes, pose corrections)."""
+        return self.use_appearance_embedding or self.camera_optimizer.mode != "off"
 
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
         """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""
@@ -71,7 +104,8 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
 
 
 class ContinualNGPModel(NerfactoModel):
-    """Nerfacto's field, sampler and renderers; the loss splits into Eq. 4's pixel and distillation terms."""
+    """Nerfacto's field, sampler and renderers; the loss splits into Eq. 4's pixel and distillation terms. Appearance
+    codes and pose corrections, when on, are learned for the open task's frames only."""
 
     config: ContinualNGPModelConfig
 
@@ -81,10 +115,68 @@ class ContinualNGPModel(NerfactoModel):
             super().populate_modules()
         if self.config.compile:
             compile_model(self)
-        if self.config.detach_sample_positions and not self.config.predict_normals:
+        refines_poses = self.config.camera_optimizer.mode != "off"  # pose gradients flow through the positions
+        if self.config.detach_sample_positions and not self.config.predict_normals and not refines_poses:
             stop_input_gradients(
                 self.field.mlp_base
             )  # outside the compiled forward, so its graph has no input gradient
+        self.task_of_frame, self.camera_of_frame = self._frame_tasks_and_cameras()
+        if self.config.use_appearance_embedding:
+            codes = code_of_frame(self.task_of_frame, self.camera_of_frame, self.config.appearance_codes)
+            set_appearance_codes(self.field, FrameCodes(codes, self.config.appearance_embed_dim))
+        self.open_task_rows: Optional[OpenTaskRows] = None
+        """Keeps closed tasks' codes and pose corrections as they were; None when the model learns neither."""
+        if self.config.learns_per_frame:
+            self.open_task_rows = OpenTaskRows(self._per_frame_parameters(), self.task_of_frame)
+
+    def _frame_tasks_and_cameras(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Task and camera of every training frame, from the training dataset's metadata (one task and one camera
+        when the model is built without it)."""
+        metadata = self.kwargs.get("metadata") or {}
+        zeros = torch.zeros(self.num_train_data, dtype=torch.long)
+        return metadata.get(FRAME_TASK, zeros).long(), metadata.get(FRAME_CAMERA, zeros).long()
+
+    def _per_frame_parameters(self) -> List[torch.Tensor]:
+        codes = appearance_codes(self.field)
+        return [
+            *([codes.embedding.weight] if isinstance(codes, FrameCodes) else []),
+            *(self.camera_optimizer.parameters()),
+        ]
+
+    def open_task(self, task: int, start: bool) -> None:
+        """From now on only `task`'s codes and pose corrections change; `start`: the task opens now (rather than a
+        resumed run continuing it), and its codes start from the previous task's."""
+        codes = appearance_codes(self.field)
+        if start and isinstance(codes, FrameCodes):
+            codes.start_task(task, self.task_of_frame, self.camera_of_frame)
+        if self.open_task_rows is not None:
+            self.open_task_rows.open(task)
+
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        if self.open_task_rows is None:
+            return callbacks
+        # first of the callbacks after an iteration: nothing may see a closed task's row moved by the optimizer step
+        return [
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._restore_closed_rows)
+        ] + callbacks
+
+    def _restore_closed_rows(self, step: int) -> None:
+        assert self.open_task_rows is not None
+        self.open_task_rows.restore()
+
+    def get_outputs(self, ray_bundle: RayBundle):
+        frames = ray_bundle.metadata.get(TRAINING_FRAME)
+        if self.training or frames is None:
+            return super().get_outputs(ray_bundle)
+        # a training frame's rays outside training (replay, test frames): rendered as training renders that frame,
+        # with its appearance code and refined pose, which nerfacto applies only while training
+        ray_bundle.camera_indices = frames.long()
+        refine_rays(self.camera_optimizer, ray_bundle)
+        with codes_looked_up_per_ray(self.field):
+            return super().get_outputs(ray_bundle)
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)

@@ -11,6 +11,7 @@ from torch import nn
 
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.per_frame import TRAINING_FRAME
 
 
 class ReplayOracle(nn.Module):
@@ -50,6 +51,9 @@ class ReplayOracle(nn.Module):
 
     @torch.no_grad()
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
-        """Colour (N, 3) the frozen copy renders along each ray."""
+        """Colour (N, 3) the frozen copy renders along each ray, each ray with the appearance code and refined pose of
+        the frame it came from, as training rendered that frame."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
+        assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
+        ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
         return self.model(ray_bundle)["rgb"]

@@ -49,6 +49,11 @@ class TaskBudget:
         self.seconds_done = 0.0
         self.next_task_requested = False
 
+    def progress(self) -> float:
+        """How much of the open task's budget is spent, from 0 to 1."""
+        done = self.seconds_done / self.seconds if self.seconds is not None else self.iterations_done / self.iterations
+        return min(done, 1.0)
+
     def progress_text(self) -> str:
         """What is left of the open task's budget, as the viewer shows it."""
         if self.next_task_requested:

@@ -67,3 +67,22 @@ def split_into_tasks(
         train.append(frames[~held_out])
         test.append(frames[held_out])
     return TaskSplit(train_frames=tuple(train), test_frames=tuple(test))
+
+
+def nearest_train_frames(split: TaskSplit, instants: np.ndarray, cameras: np.ndarray) -> np.ndarray:
+    """For every test frame (in test-frame order), the training frame (in training-frame order) of its task taken by
+    its camera nearest to it in time (any camera's when its camera has no training frame in the task).
+
+    `instants` and `cameras` give the capture instant and camera of every frame of the trajectory.
+    """
+    train_frames = split.all_train_frames()
+    train_task = split.train_task_of_frame()
+    nearest = []
+    for test_frame, task in zip(split.all_test_frames(), split.test_task_of_frame()):
+        candidates = np.nonzero(train_task == task)[0]
+        same_camera = candidates[cameras[train_frames[candidates]] == cameras[test_frame]]
+        if len(same_camera):
+            candidates = same_camera
+        distance = np.abs(instants[train_frames[candidates]] - instants[test_frame])
+        nearest.append(candidates[np.argmin(distance)])
+    return np.array(nearest, dtype=np.int64)

@@ -16,6 +16,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from continual_nerf.plots import draw_accuracy_matrix  # noqa: E402
+
 PAPER_NAMES = {
     "continual-ngp-paper": "Ours",
     "continual-ngp": "Ours, this plugin's defaults",
@@ -133,19 +135,9 @@ def plot_fig6(fig6: Dict[str, Any], path: Path) -> None:
 def plot_accuracy_matrix(run: Run, path: Path) -> None:
     """Heatmap of R[i][j] (PSNR of task j after training task i), blank above the diagonal for unseen tasks."""
     size = run["num_tasks"]
-    matrix = np.full((len(run["psnr"]), size), np.nan)
-    for i, row in enumerate(run["psnr"]):
-        matrix[i, : len(row)] = row
-    figure, axes = plt.subplots(figsize=(max(3.6, 1.4 + 0.6 * size), max(2.8, 1.0 + 0.5 * len(matrix))))
-    image = axes.imshow(matrix, cmap="viridis")
-    if size <= 12:
-        for (i, j), value in np.ndenumerate(matrix):
-            if not np.isnan(value):
-                axes.text(j, i, f"{value:.1f}", ha="center", va="center", color="white", fontsize=7)
-    axes.set_xticks(range(size), [str(j + 1) for j in range(size)])
-    axes.set_yticks(range(len(matrix)), [str(i + 1) for i in range(len(matrix))])
-    axes.set_xlabel("test task j")
-    axes.set_ylabel("after training task i")
+    rows = len(run["psnr"])
+    figure, axes = plt.subplots(figsize=(max(3.6, 1.4 + 0.6 * size), max(2.8, 1.0 + 0.5 * rows)))
+    image = draw_accuracy_matrix(axes, run["psnr"], size)
     axes.set_title(f"{paper_name(run['method'])}: PSNR (dB)", fontsize=9)
     figure.colorbar(image, ax=axes, fraction=0.046)
     _save(figure, path)

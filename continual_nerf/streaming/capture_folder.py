@@ -13,6 +13,12 @@ The capture protocol (what `continual-nerf-replay-capture` writes, and what a li
 
 Names that start with a dot or do not end in .json, .task or .end are ignored. A JSON that does not parse, or whose
 image does not decode yet, is retried on the next poll and the entries after it wait, so capture order is kept.
+
+The folder is another process's output and is read as untrusted input: only regular files whose real path lies
+inside the folder are opened (no absolute `file_path`, no `..` out of it, no symlink leading elsewhere, no FIFO), and
+a frame that can never be used (such a path, an image too large to decode, JSON over 1 MiB or nested too deeply,
+intrinsics that are not finite, positive and inside the image, an image of another size than the frame says) is
+skipped with one warning line naming it; training goes on.
 """
 
 from __future__ import annotations
@@ -32,12 +38,17 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from continual_nerf.dataparsers.capture import fit_into_box, fitted_poses
+from continual_nerf.core.interrupts import INTERRUPTS
+from continual_nerf.dataparsers.capture import CaptureOutputs, fit_into_box, fitted_poses
 from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
-from continual_nerf.errors import DatasetError
+from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.untrusted_files import open_inside, real_path_inside
 
 if TYPE_CHECKING:
     from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
+
+MAX_FRAME_JSON_BYTES = 1 << 20
+"""A frame JSON holds a few hundred bytes; a larger file is not read into memory."""
 
 ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
 """Entry kinds by file suffix; at equal sequence numbers a frame comes before the marker that follows it."""
@@ -73,45 +84,70 @@ class NotReady(Exception):
     """An entry that is still being written: read again on the next poll."""
 
 
-def check_image(image: Path, intrinsics: np.ndarray, source: str) -> None:
-    """Decode `image` completely; a missing or truncated file is not ready, a wrong size is an error."""
+def check_image(image: Path, folder: Path, intrinsics: np.ndarray) -> None:
+    """Decode `image` (a regular file inside `folder`) completely; a missing or truncated file is not ready, a wrong
+    size or a decompression bomb is an error."""
+    width, height = int(intrinsics[4]), int(intrinsics[5])  # whole numbers: parse_intrinsics checked them
     try:
-        with Image.open(image) as picture:
+        with open_inside(image, folder) as file, Image.open(file) as picture:
+            if picture.size != (width, height):  # checked before decoding: the header says what the pixels hold
+                raise DatasetError(
+                    f"image {image} is {picture.size[0]}x{picture.size[1]} pixels, the frame says w={width} h={height}"
+                )
             picture.load()
-            size = picture.size
+    except DatasetError:  # a ValueError, which PIL raises for a file cut short too
+        raise
+    except Image.DecompressionBombError as error:
+        raise DatasetError(f"image {image} is too large to decode ({first_line(error)})") from None
     except FileNotFoundError:
         raise NotReady(f"{image} does not exist yet") from None
     except (OSError, SyntaxError, ValueError) as error:  # PIL's errors for a file cut short
-        raise NotReady(f"{image} does not decode yet ({error})") from None
-    width, height = int(intrinsics[4]), int(intrinsics[5])
-    if size != (width, height):
-        raise DatasetError(
-            f"{source}: image {image} is {size[0]}x{size[1]} pixels, the frame says w={width} h={height}"
-        )
+        raise NotReady(f"{image} does not decode yet ({first_line(error)})") from None
 
 
-def read_frame(path: Path) -> StreamFrame:
-    """A frame JSON and a check that its image decodes."""
+def read_json(path: Path, folder: Path) -> object:
+    """The content of a frame JSON: a regular file inside `folder`; half-written JSON is not ready yet."""
     try:
-        frame = json.loads(path.read_text())
+        with open_inside(path, folder) as file:
+            content = file.read(MAX_FRAME_JSON_BYTES + 1)
+        if len(content) > MAX_FRAME_JSON_BYTES:
+            raise DatasetError(f"{path}: larger than {MAX_FRAME_JSON_BYTES >> 20} MiB, not a frame JSON; not read")
+        return json.loads(content.decode())
+    except DatasetError:  # a ValueError, as json's errors are
+        raise
     except FileNotFoundError:  # replaced or removed by the writer since the folder was listed
         raise NotReady(f"{path} is gone") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise NotReady(f"not valid JSON yet ({error})") from None
-    if not isinstance(frame, dict) or "file_path" not in frame:
-        raise DatasetError(f"{path}: a frame needs `file_path` (nerfstudio's transforms.json frame format)")
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError) as error:
+        raise NotReady(f"not valid JSON yet ({first_line(error)})") from None
+    except (RecursionError, ValueError) as error:  # nested too deeply, numbers too long: no complete file parses
+        raise DatasetError(f"{path}: not a usable frame JSON ({first_line(error)})") from None
+
+
+def read_frame(path: Path, folder: Path) -> StreamFrame:
+    """A frame JSON and a check that its image, a regular file inside `folder`, decodes."""
+    frame = read_json(path, folder)
+    if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+        raise DatasetError(f"{path}: a frame needs a `file_path` string (nerfstudio's transforms.json frame format)")
     source = str(path)
     intrinsics, distortion = parse_intrinsics(frame, source)
     camera_to_world = transforms_pose(frame.get("transform_matrix"), source)
-    image = path.parent / str(frame["file_path"])
-    check_image(image, intrinsics, source)
+    try:
+        image = real_path_inside(folder / frame["file_path"], folder)  # the file checked is the file trained on
+        check_image(image, folder, intrinsics)
+    except DatasetError as error:
+        raise DatasetError(f"{source}: {error}") from None
     return StreamFrame(path.name, image, camera_to_world, intrinsics, distortion)
 
 
-def read_entry(path: Path) -> Union[StreamFrame, StreamMarker]:
+def read_entry(path: Path, folder: Path) -> Union[StreamFrame, StreamMarker]:
     if path.suffix == ".json":
-        return read_frame(path)
+        return read_frame(path, folder)
     return StreamMarker(path.name, "task" if path.suffix == ".task" else "end")
+
+
+def warn(message: str) -> None:
+    """One warning line; markup off, since names and messages come from the capture folder."""
+    CONSOLE.print(message, style="bold yellow", markup=False, soft_wrap=True)
 
 
 def entry_key(name: str) -> Tuple[list, int]:
@@ -143,10 +179,7 @@ class CaptureWatcher:
         first_try = self.failing_since.setdefault(name, time.monotonic())
         if not (self.unreadable_timeout and time.monotonic() - first_try >= self.unreadable_timeout):
             return False
-        CONSOLE.print(
-            f"[bold yellow]{self.folder / name}: still unreadable after {self.unreadable_timeout:g} s "
-            f"({reason}); skipped"
-        )
+        warn(f"{self.folder / name}: still unreadable after {self.unreadable_timeout:g} s ({reason}); skipped")
         return True
 
     def new_entries(self) -> List[Union[StreamFrame, StreamMarker]]:
@@ -154,10 +187,12 @@ class CaptureWatcher:
         ready = []
         for name in self._unread_names():
             try:
-                ready.append(read_entry(self.folder / name))
+                ready.append(read_entry(self.folder / name, self.folder))
             except NotReady as reason:
                 if not self._give_up(name, reason):
                     break  # later entries wait, so the capture order is kept
+            except DatasetError as error:  # the capture is another process's input: a bad frame never stops training
+                warn(f"{error}; frame skipped")
             self.done.add(name)
             self.failing_since.pop(name, None)
         return ready
@@ -245,20 +280,23 @@ class CaptureTasks:
 
     def _close_at_marker(self, marker: str) -> None:
         if not self.close_task() and self.collecting:
-            CONSOLE.print(f"[yellow]{marker}: a task needs 2 frames; {self.collecting[0].name} joins the next task")
+            warn(f"{marker}: a task needs 2 frames; {self.collecting[0].name} joins the next task")
 
     def _end(self, reason: str) -> None:
         self.close_task()
         if self.collecting:
-            CONSOLE.print(f"[yellow]{self.collecting[0].name}: the last frame alone is too few for a task; not used")
+            warn(f"{self.collecting[0].name}: the last frame alone is too few for a task; not used")
         self.ended = True
         count = sum(len(task) for task in self.tasks)
-        CONSOLE.log(f"{self.config.data}: capture ended ({reason}): {len(self.tasks)} tasks, {count} frames")
+        CONSOLE.log(
+            f"{self.config.data}: capture ended ({reason}): {len(self.tasks)} tasks, {count} frames", markup=False
+        )
 
     def wait_until(self, done: Callable[[], bool]) -> None:
-        """Poll every --poll-seconds (sleeping in between) until `done()` or the end of the capture."""
+        """Poll every --poll-seconds (sleeping in between) until `done()`, the end of the capture or Ctrl-C (which
+        the trainer answers at the next iteration)."""
         self.poll()
-        while not done() and not self.ended:
+        while not done() and not self.ended and not INTERRUPTS.pending():
             time.sleep(self.config.poll_seconds)
             self.poll()
 
@@ -293,7 +331,7 @@ class CaptureTasks:
         intrinsics = torch.from_numpy(np.stack([frame.intrinsics for frame in frames])).float()
         distortion = np.stack([frame.distortion for frame in frames])
         bound = self.config.scene_box_bound
-        return DataparserOutputs(
+        return CaptureOutputs(
             image_filenames=[frame.image for frame in frames],
             cameras=Cameras(
                 camera_to_worlds=poses,
@@ -308,7 +346,7 @@ class CaptureTasks:
                 camera_type=CameraType.PERSPECTIVE,
             ),
             scene_box=SceneBox(aabb=torch.tensor([[-bound] * 3, [bound] * 3], dtype=torch.float32)),
-            dataparser_transform=torch.from_numpy(self.transform).float(),
+            dataparser_transform=torch.from_numpy(self.transform),
             dataparser_scale=self.scale,
             metadata={"image_scale_factor": 1.0 / self.config.downscale_factor},
         )

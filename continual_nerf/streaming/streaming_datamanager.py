@@ -62,6 +62,10 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
                 "--pipeline.datamanager.joint needs every task from the start; a capture has not sent them yet"
             )
 
+    def frames_known_at_start(self) -> bool:
+        """Frames keep arriving while training runs: no per-frame codes or poses for frames not there yet."""
+        return False
+
     def budgeted_iterations(self) -> Optional[int]:
         """The capture decides how many tasks there are."""
         return None
@@ -194,7 +198,7 @@ class StreamingDataManager(ContinualDataManager):
             with released(train_lock):  # the viewer renders under the train lock
                 self.capture.wait_until(lambda: self._next_task_ready() or self.capture_finished)
             self._last_poll = time.monotonic()
-            return True
+            return self._next_task_ready() or self.capture_finished  # not when Ctrl-C ended the wait
         if not self._idle_reported:
             CONSOLE.log(f"Task {self.released_task + 1}: budget spent, refining until the next task's frames arrive")
             self._idle_reported = True

@@ -1,24 +1,36 @@
-"""The viewer's "Continual learning" panel: the open task, its progress, the latest accuracy-matrix row, and the
-controls "Next task now" and "Pause after this task". Everything else (live render, render and export tabs,
-pause/resume) is nerfstudio's viewer unchanged.
+"""The viewer's "Continual learning" panel: the open task and its progress (or the set-up stage before training),
+the task colours, the accuracy matrix as a picture with the latest mean PSNR, and the controls "Next task now",
+"Pause after this task" and "Follow the newest task". Everything else (live render, render and export tabs,
+pause/resume) is nerfstudio's viewer.
 
-The Trainer builds the panel when the viewer runs (as nerfstudio's Trainer builds its viewer); the panel reads the
-pipeline's `ContinualStatus` and never imports the pipeline.
+The Trainer builds the panel when the viewer runs (as nerfstudio's Trainer builds its viewer) and installs it as soon
+as the viewer answers; the panel reads the pipeline's `ContinualStatus` and never imports the pipeline.
 """
 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Callable, List, Optional, Tuple
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, List, Optional, Sequence, Tuple
 
+import viser
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
 from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerElement, ViewerText
 
 from continual_nerf.core.continual_dataset import ContinualDataset
-from continual_nerf.nerfstudio_compat import init_scene_without_frustums, panel_order, show_resume_button
-from continual_nerf.viewer.task_cameras import TaskCameras
+from continual_nerf.nerfstudio_compat import (
+    disable_training_buttons,
+    init_scene_without_frustums,
+    panel_order,
+    set_render_defaults,
+    show_resume_button,
+    show_step,
+)
+from continual_nerf.viewer.pictures import accuracy_markdown, legend_markdown
+from continual_nerf.viewer.task_cameras import TaskCameras, View, framing_view
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 if TYPE_CHECKING:
     from nerfstudio.engine.trainer import Trainer
@@ -29,6 +41,12 @@ REFRESH_SECONDS = 0.25
 """The panel's progress is rewritten at most this often."""
 PANEL_LABEL = "Continual learning"
 """Title of the panel's folder in the viewer."""
+PROGRESS_LABEL = "Progress:"
+"""Start of the panel's progress line."""
+NO_ROW_YET = "measured when task 1 ends"
+"""What the accuracy fields say before the first task has ended."""
+MARKDOWN_ROOT = Path(__file__).parent
+"""viser warns about markdown without an image root; the pictures are data URLs, read from nowhere."""
 
 
 def task_text(status: ContinualStatus) -> str:
@@ -37,11 +55,36 @@ def task_text(status: ContinualStatus) -> str:
     return f"{text}+ (capture running)" if status.capture_running else text
 
 
-def psnr_text(psnr_rows: List[List[float]]) -> str:
-    """The latest accuracy-matrix row: test PSNR of every task seen so far."""
-    if not psnr_rows:
-        return "measured when task 1 ends"
-    return f"after task {len(psnr_rows)}: " + " | ".join(f"{value:.2f}" for value in psnr_rows[-1])
+def mean_psnr_text(mean_psnr: Sequence[float]) -> str:
+    """The latest mean test PSNR over the tasks seen so far."""
+    if not mean_psnr:
+        return NO_ROW_YET
+    return f"{mean_psnr[-1]:.2f} dB after task {len(mean_psnr)}"
+
+
+def frame_view(client: viser.ClientHandle, view: View) -> None:
+    """Move a browser's camera to `view`."""
+    with client.atomic():
+        client.camera.up_direction = view.up
+        client.camera.position = view.position
+        client.camera.look_at = view.look_at
+
+
+class TaskPictures:
+    """The legend of the task colours and the accuracy-matrix heat map, redrawn only when they change."""
+
+    def __init__(self, server: viser.ViserServer) -> None:
+        self.legend = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
+        self.accuracy = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
+        self._drawn: Tuple[int, Optional[List[List[float]]]] = (0, None)
+
+    def show(self, num_tasks: int, psnr_rows: List[List[float]]) -> None:
+        drawn_tasks, drawn_rows = self._drawn
+        if num_tasks != drawn_tasks:
+            self.legend.content = legend_markdown(num_tasks)
+        if psnr_rows and (psnr_rows != drawn_rows or num_tasks != drawn_tasks):
+            self.accuracy.content = accuracy_markdown(psnr_rows, num_tasks)
+        self._drawn = (num_tasks, psnr_rows)
 
 
 class ContinualPanel:
@@ -56,37 +99,63 @@ class ContinualPanel:
         status: Callable[[], ContinualStatus],
         request_next_task: Callable[[], None],
         dataset: Callable[[], ContinualDataset],
+        options: ContinualViewerConfig,
     ) -> None:
         self.status = status
         self.dataset = dataset
         """The training dataset: a streaming run replaces it whenever a task arrives."""
+        self.options = options
         self.task = ViewerText("Task", "", disabled=True, hint="Open task, of the tasks known so far")
-        self.progress = ViewerText("Progress", "", disabled=True, hint="Budget of the open task")
-        self.psnr = ViewerText("Test PSNR (dB)", "", disabled=True, hint="Latest accuracy-matrix row: PSNR per task")
+        self.mean_psnr = ViewerText(
+            "Mean test PSNR", NO_ROW_YET, disabled=True, hint="Over the test frames of every task seen so far"
+        )
         self.next_task = ViewerButton("Next task now", cb_hook=lambda _: request_next_task())
         self.pause_after_task = ViewerCheckbox(
             "Pause after this task", False, hint="Pause training when the open task ends; Resume Training goes on"
         )
+        self.follow = ViewerCheckbox(
+            "Follow the newest task",
+            options.follow_newest_task,
+            cb_hook=lambda _: self._follow(),
+            hint="Move the view to each task as it is released",
+        )
+        self.progress: Optional[viser.GuiMarkdownHandle] = None
+        """Set-up stage, then the open task's budget: a markdown line, which wraps where a text field would cut."""
         self.viewer: Optional[Viewer] = None
         self.cameras: Optional[TaskCameras] = None
+        self.pictures: Optional[TaskPictures] = None
         self.shown: Optional[Tuple[int, Optional[int]]] = None
         """(open task, task whose pixels the dataset holds) when the frustums were last drawn."""
+        self.stage: Optional[str] = None
+        """What set-up is doing while training has not started; None once it has."""
         self._refreshed = 0.0
 
     @property
     def elements(self) -> Tuple[ViewerElement, ...]:
-        return (self.task, self.progress, self.psnr, self.next_task, self.pause_after_task)
+        return (self.task, self.mean_psnr, self.next_task, self.pause_after_task, self.follow)
 
-    def attach(self, viewer: Viewer, trainer: Trainer) -> None:
-        """Set up `viewer`'s scene with the released tasks only, and install the panel."""
-        init_scene_without_frustums(viewer, self.dataset(), trainer.training_state)
+    def install(self, viewer: Viewer, training_state: str) -> None:
+        """Set up `viewer`'s scene with the released tasks only, and install the panel (as soon as the viewer runs)."""
+        dataset = self.dataset()
+        init_scene_without_frustums(viewer, dataset, training_state)
+        set_render_defaults(viewer, self.options.max_res, self.options.train_util)
         self.viewer = viewer
-        self.cameras = TaskCameras(viewer, len(self.dataset()))
+        self.cameras = TaskCameras(viewer, dataset, self.options.camera_frustum_scale)
+        server = viewer.viser_server
         # between nerfstudio's status lines and its tabs, so it shows without scrolling
-        with viewer.viser_server.gui.add_folder(PANEL_LABEL, order=panel_order(viewer)):
-            for element in self.elements:
-                element.install(viewer.viser_server)
+        with server.gui.add_folder(PANEL_LABEL, order=panel_order(viewer)):
+            self.task.install(server)
+            self.progress = server.gui.add_markdown("")
+            self.pictures = TaskPictures(server)
+            for element in self.elements[1:]:
+                element.install(server)
+        server.on_client_connect(self._frame_new_client)
         self._show_task()
+
+    def show_stage(self, stage: Optional[str]) -> None:
+        """Say what set-up is doing (the Trainer calls this before training starts); None: training has started."""
+        self.stage = stage
+        self.refresh()
 
     def training_callbacks(self, trainer: Trainer) -> List[TrainingCallback]:
         """Callbacks to run after the pipeline's task switch in every iteration."""
@@ -96,17 +165,29 @@ class ContinualPanel:
         ]
 
     def _after_iteration(self, trainer: Trainer, step: int) -> None:
-        shown = self.shown
-        if (self.status().current_task, self.dataset().open_task) != shown:
+        self.stage = None
+        shown, current_task = self.shown, self.status().current_task
+        task_changed = (current_task, self.dataset().open_task) != shown
+        if not task_changed and time.monotonic() - self._refreshed < REFRESH_SECONDS:
+            return
+        if task_changed:
             self._show_task()
-            if shown is not None and self.status().current_task != shown[0]:
+            if shown is not None and current_task != shown[0]:
+                self._follow()
                 self._pause_if_asked(trainer)
-        elif time.monotonic() - self._refreshed >= REFRESH_SECONDS:
+        else:
             self.refresh()
+        if self.viewer is not None:
+            show_step(self.viewer, step)
 
     def _after_training(self, step: int) -> None:
         self.refresh()
-        self.progress.value = "training finished"
+        self._show_progress("training finished")
+        for control in (self.next_task, self.pause_after_task):
+            control.set_disabled(True)
+        if self.viewer is not None:
+            show_step(self.viewer, step)
+            disable_training_buttons(self.viewer)
 
     def _show_task(self) -> None:
         current_task, dataset = self.status().current_task, self.dataset()
@@ -114,6 +195,23 @@ class ContinualPanel:
         if self.cameras is not None:
             self.cameras.show(dataset, current_task)
         self.refresh()
+
+    def _view(self, client: viser.ClientHandle) -> View:
+        """The newest task's cameras when following it, else every camera known so far."""
+        dataset = self.dataset()
+        frames = range(len(dataset))
+        if self.follow.value:
+            frames = dataset.frames_of_task(self.status().current_task).tolist()
+        return framing_view(dataset, frames, client.camera.fov)
+
+    def _frame_new_client(self, client: viser.ClientHandle) -> None:
+        frame_view(client, self._view(client))
+
+    def _follow(self) -> None:
+        if self.viewer is None or not self.follow.value:
+            return
+        for client in self.viewer.viser_server.get_clients().values():
+            frame_view(client, self._view(client))
 
     def _pause_if_asked(self, trainer: Trainer) -> None:
         """At a task boundary, pause the Trainer when "Pause after this task" is ticked (then untick it)."""
@@ -127,9 +225,15 @@ class ContinualPanel:
         )
 
     def refresh(self) -> None:
-        """Rewrite the panel's texts from the pipeline's status."""
+        """Rewrite the panel's texts and pictures from the pipeline's status."""
         status = self.status()
         self.task.value = task_text(status)
-        self.progress.value = status.progress
-        self.psnr.value = psnr_text(status.psnr_rows)
+        self._show_progress(status.progress if self.stage is None else f"setting up: {self.stage}")
+        self.mean_psnr.value = mean_psnr_text(status.mean_psnr)
+        if self.pictures is not None:
+            self.pictures.show(status.known_tasks, status.psnr_rows)
         self._refreshed = time.monotonic()
+
+    def _show_progress(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress.content = f"{PROGRESS_LABEL} {text}"

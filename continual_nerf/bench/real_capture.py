@@ -1,0 +1,278 @@
+"""How continual-ngp trains on a capture with a real camera's flaws, with and without the feature that answers each.
+
+    python -m continual_nerf.bench.real_capture [--scenes room street] [--setting 5x240] [--output-dir ...]
+
+On the demo room: the clean capture, the same images with exposure and white balance changing by +-30 % (a jump at
+every task boundary, a drift within), and the clean images with poses off by 1 degree and 1 % of the trajectory's
+length (smooth along the capture); on the demo street: the clean capture and its three cameras each with its own
+colour response (+-20 %). Each is trained with continual-ngp's defaults ("off") and with the feature that answers its
+flaw: appearance codes (per image, or per camera and task) or pose refinement; the clean room also with each feature
+on, to see what a feature costs where it has nothing to fix. The table gives every run's final mean test PSNR beside
+the clean capture's and, for pose errors, the rotation and translation errors of the training poses before and after
+refinement (each trajectory first moved by the rigid motion that fits it best onto the true one: where the whole
+trajectory lies is not observable). Finished runs are read back, not trained again, so an interrupted benchmark
+resumes; results.md in the output folder holds the tables.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple
+
+import numpy as np
+import torch
+import tyro
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.utils.rich_utils import CONSOLE
+from rich.table import Table
+
+from continual_nerf.atomic_files import write_text_atomically
+from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
+from continual_nerf.bench.quality import RunSummary, Setting
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.per_frame import refined_poses
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.dataparsers.demo_capture import pose_errors, trajectory_length
+from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.recipes import quiet_config, train_like_ns_train
+
+Scene = Literal["room", "street"]
+
+CAPTURES: Dict[str, Dict[str, float]] = {
+    "clean": {},
+    "exposure +-30 %": {"exposure_strength": 0.3},
+    "poses off 1 deg, 1 %": {"pose_noise_degrees": 1.0, "pose_noise_translation": 0.01},
+    "camera responses +-20 %": {"camera_response_strength": 0.2},
+}
+"""The demo's capture options of each flaw (exposure segments follow the number of tasks)."""
+
+FEATURES: Dict[str, Dict[str, Any]] = {
+    "off": {},
+    "codes per image": {"use_appearance_embedding": True, "appearance_codes": "image"},
+    "codes per camera and task": {"use_appearance_embedding": True, "appearance_codes": "camera-task"},
+    "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
+}
+"""continual-ngp's model options of each feature."""
+
+RUNS: Dict[str, List[Tuple[str, str]]] = {
+    "room": [
+        ("clean", "off"),
+        ("clean", "codes per image"),
+        ("clean", "pose refinement"),
+        ("exposure +-30 %", "off"),
+        ("exposure +-30 %", "codes per image"),
+        ("exposure +-30 %", "codes per camera and task"),
+        ("poses off 1 deg, 1 %", "off"),
+        ("poses off 1 deg, 1 %", "pose refinement"),
+    ],
+    "street": [
+        ("clean", "off"),
+        ("camera responses +-20 %", "off"),
+        ("camera responses +-20 %", "codes per image"),
+        ("camera responses +-20 %", "codes per camera and task"),
+    ],
+}
+"""(capture, feature) pairs trained on each scene."""
+REFERENCE = ("clean", "off")
+"""Every scene's reference run: the clean capture, no feature."""
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """Root mean square errors of the training poses against the true ones, after the best rigid fit."""
+
+    rotation_before: float
+    """Degrees, the poses the parser returned."""
+    rotation_after: float
+    """Degrees, the poses after refinement (the returned ones when the run did not refine)."""
+    translation_before: float
+    """Percent of the trajectory's length, the returned poses."""
+    translation_after: float
+    """Percent of the trajectory's length, after refinement."""
+
+
+@dataclass(frozen=True)
+class CaptureRun:
+    """What the table shows of one run."""
+
+    quality: RunSummary
+    """Final PSNR, per-task spread, training time, ..."""
+    after_own_task: float
+    """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal)."""
+    poses: Optional[PoseErrors]
+    """Training pose errors, for captures with pose errors."""
+
+    @classmethod
+    def read(cls, path: Path) -> "CaptureRun":
+        saved = json.loads(path.read_text())
+        poses = saved["poses"] and PoseErrors(**saved["poses"])
+        return cls(quality=RunSummary(**saved["quality"]), after_own_task=saved["after_own_task"], poses=poses)
+
+
+def fitted_onto(poses: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) `poses` moved by the rigid motion that best fits their camera centres and axes onto `true`'s."""
+    centre, true_centre = poses[:, :, 3].mean(axis=0), true[:, :, 3].mean(axis=0)
+    spread = np.sqrt(((true[:, :, 3] - true_centre) ** 2).sum(axis=-1).mean())
+    # least squares over centres and camera axes (at the trajectory's spread), whose cross-covariance gives the rotation
+    covariance = (true[:, :, 3] - true_centre).T @ (poses[:, :, 3] - centre)
+    covariance += spread**2 * np.einsum("nij,nkj->ik", true[:, :, :3], poses[:, :, :3])
+    u, _, vt = np.linalg.svd(covariance)
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    fitted = poses.copy()
+    fitted[:, :, :3] = rotation @ poses[:, :, :3]
+    fitted[:, :, 3] = (poses[:, :, 3] - centre) @ rotation.T + true_centre
+    return fitted
+
+
+def rms_errors(poses: np.ndarray, true: np.ndarray, length: float) -> Tuple[float, float]:
+    """Root mean square rotation (degrees) and position (percent of `length`) errors after the best rigid fit."""
+    degrees, distances = pose_errors(fitted_onto(poses, true), true)
+    return float(np.sqrt((degrees**2).mean())), float(100 * np.sqrt((distances**2).mean()) / length)
+
+
+def training_pose_errors(trainer: ContinualTrainer, demo: ContinualDemoDataParserConfig) -> PoseErrors:
+    """The training frames' pose errors before and after the run refined them."""
+    datamanager, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    assert isinstance(model, NerfactoModel)
+    cameras = datamanager.train_dataset.cameras
+    given = cameras.camera_to_worlds.double().numpy()
+    refined = refined_poses(model.camera_optimizer, cameras, torch.arange(len(cameras)))
+    exact = dataclasses.replace(demo, pose_noise_degrees=0.0, pose_noise_translation=0.0)
+    true_all = exact.setup().get_dataparser_outputs("train").cameras.camera_to_worlds.double().numpy()
+    true = true_all[datamanager.task_split.all_train_frames()]
+    length = trajectory_length(true_all[:, :, 3])
+    (rotation_before, translation_before), (rotation_after, translation_after) = (
+        rms_errors(given, true, length),
+        rms_errors(refined.double().numpy(), true, length),
+    )
+    return PoseErrors(rotation_before, rotation_after, translation_before, translation_after)
+
+
+@dataclass
+class RealCaptureBenchmark(DemoBenchmark):
+    """Trains continual-ngp on the demo with each flaw of a real capture, each answering feature off and on."""
+
+    scenes: Tuple[Scene, ...] = ("room", "street")
+    """Built-in scenes to measure on (continual-demo --scene): the room with exposure changes and pose errors, the
+    street with its cameras' colour responses."""
+    setting: str = "5x240"
+    """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
+    features: Tuple[str, ...] = tuple(FEATURES)
+    """Which features' runs to train (names as the tables print them); the clean capture's run with none is always
+    trained, as every table's reference."""
+    small_model: bool = False
+    """A hash grid small enough to train in minutes on a CPU: a quick look, not the measurement."""
+    output_dir: Path = Path("outputs/bench-real-capture")
+    """Runs, results.json and results.md; finished runs found here are not trained again."""
+
+    def main(self) -> None:
+        check_names("features", self.features, FEATURES)
+        results = {scene: self.run_scene(scene) for scene in self.scenes}
+        for scene, runs in results.items():
+            self.print_table(scene, runs)
+        saved = {scene: {key: dataclasses.asdict(run) for key, run in runs.items()} for scene, runs in results.items()}
+        write_text_atomically(self.output_dir / "results.json", json.dumps(saved, indent=1))
+        write_text_atomically(self.output_dir / "results.md", self.markdown(results))
+        CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}")
+
+    def run_scene(self, scene: Scene) -> Dict[str, CaptureRun]:
+        """The scene's runs of the chosen features and its reference run, by "capture | feature"."""
+        chosen = [(c, f) for c, f in RUNS[scene] if f in self.features and (c, f) != REFERENCE]
+        # the reference last: a benchmark of other features running beside this one may be training it already
+        runs = {pair: self.run(scene, *pair) for pair in [*chosen, REFERENCE]}
+        return {" | ".join(pair): runs[pair] for pair in RUNS[scene] if pair in runs}
+
+    def demo(self, scene: Scene, capture: str) -> ContinualDemoDataParserConfig:
+        options = {**CAPTURES[capture], "exposure_segments": Setting.parse(self.setting).num_tasks}
+        return ContinualDemoDataParserConfig(data=self.data, scene=scene, **options)  # type: ignore[arg-type]
+
+    def run(self, scene: Scene, capture: str, feature: str) -> CaptureRun:
+        """The run of `feature` on `scene`'s `capture`: read back if it finished before, trained otherwise."""
+        name = f"{capture}_{feature}".replace(" ", "-").replace(",", "").replace("%", "pc").replace("+-", "")
+        folder = self.output_dir / "runs" / scene / Setting.parse(self.setting).key / name
+        summary_path = folder / "summary.json"
+        if summary_path.exists():
+            return CaptureRun.read(summary_path)
+        demo = self.demo(scene, capture)
+        config = self.config(demo, feature, folder)
+        CONSOLE.print(f"[bold]{scene}, {capture}: training continual-ngp, {feature}")
+        trainer = train_like_ns_train(config)
+        matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+        noisy = demo.pose_noise_degrees > 0 or demo.pose_noise_translation > 0
+        run = CaptureRun(
+            quality=RunSummary.of(matrix, trainer.pipeline.budget.total_seconds),
+            after_own_task=float(np.mean([row[-1] for row in matrix.psnr])),
+            poses=training_pose_errors(trainer, demo) if noisy else None,
+        )
+        write_text_atomically(summary_path, json.dumps(dataclasses.asdict(run), indent=1))
+        return run
+
+    def config(self, demo: ContinualDemoDataParserConfig, feature: str, folder: Path) -> ContinualTrainerConfig:
+        setting = Setting.parse(self.setting)
+        config = quiet_config(
+            CONTINUAL_NGP,
+            folder,
+            device=self.device,
+            small=self.small_model,
+            dataparser=demo,
+            num_tasks=setting.num_tasks,
+            iterations_per_task=setting.iterations or 1,  # unused when the tasks are timed
+            seconds_per_task=setting.seconds,
+            train_num_rays_per_batch=self.rays_per_batch,
+        )
+        config.save_only_latest_checkpoint = True
+        config.pipeline.model = dataclasses.replace(config.pipeline.model, **FEATURES[feature])
+        return config
+
+    def title(self, scene: str) -> str:
+        return f"{scene}, {Setting.parse(self.setting)}, {self.rays_per_batch} rays per batch"
+
+    def print_table(self, scene: str, runs: Dict[str, CaptureRun]) -> None:
+        table = Table(title=self.title(scene))
+        for column in TABLE_COLUMNS:
+            table.add_column(column, justify="right")
+        for key, run in runs.items():
+            table.add_row(*table_row(key, run, runs[" | ".join(REFERENCE)]))
+        CONSOLE.print(table)
+
+    def markdown(self, results: Dict[str, Dict[str, CaptureRun]]) -> str:
+        lines = ["# Real-capture flaws (`python -m continual_nerf.bench.real_capture`)", ""]
+        for scene, runs in results.items():
+            lines += [f"## {self.title(scene)}", "", "| " + " | ".join(TABLE_COLUMNS) + " |"]
+            lines.append("|" + "---|" * len(TABLE_COLUMNS))
+            lines += [
+                "| " + " | ".join(table_row(key, run, runs[" | ".join(REFERENCE)])) + " |" for key, run in runs.items()
+            ]
+            lines.append("")
+        return "\n".join(lines)
+
+
+TABLE_COLUMNS = (
+    "capture", "feature", "final mean PSNR (dB)", "vs clean, off (dB)", "right after own task (dB)",
+    "rotation error (deg) before -> after", "translation error (% of length) before -> after", "training s",
+)  # fmt: skip
+
+
+def table_row(key: str, run: CaptureRun, clean: CaptureRun) -> List[str]:
+    capture, feature = key.split(" | ")
+    poses = run.poses
+    rotation = "" if poses is None else f"{poses.rotation_before:.2f} -> {poses.rotation_after:.2f}"
+    translation = "" if poses is None else f"{poses.translation_before:.2f} -> {poses.translation_after:.2f}"
+    final = run.quality.final_mean_psnr
+    return [
+        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", f"{run.after_own_task:.2f}",
+        rotation, translation, f"{run.quality.train_seconds:.0f}",
+    ]  # fmt: skip
+
+
+def entrypoint() -> None:
+    tyro.cli(RealCaptureBenchmark).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

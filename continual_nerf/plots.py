@@ -1,0 +1,42 @@
+"""Pictures shared by the experiments report and the viewer: the task colours and the accuracy-matrix heat map."""
+
+from __future__ import annotations
+
+from typing import Sequence, Tuple
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.axes import Axes
+from matplotlib.image import AxesImage
+
+
+def task_colour(task: int) -> Tuple[int, int, int]:
+    """RGB colour of a task (0-based) in the viewer's frustums and every picture: matplotlib's tab10, cycling."""
+    red, green, blue, _ = colormaps["tab10"](task % 10)
+    return int(red * 255), int(green * 255), int(blue * 255)
+
+
+def task_colour_float(task: int) -> Tuple[float, float, float]:
+    red, green, blue = task_colour(task)
+    return red / 255, green / 255, blue / 255
+
+
+def draw_accuracy_matrix(axes: Axes, psnr: Sequence[Sequence[float]], num_tasks: int) -> AxesImage:
+    """Heat map of R[i][j] (PSNR of task j after training task i) on `axes`, blank above the diagonal for unseen
+    tasks, the values written in the cells while they fit and the task numbers in the task colours."""
+    matrix = np.full((max(len(psnr), 1), num_tasks), np.nan)
+    for i, row in enumerate(psnr):
+        matrix[i, : len(row)] = row
+    image = axes.imshow(matrix, cmap="viridis", aspect="auto")
+    if num_tasks <= 12:
+        for (i, j), value in np.ndenumerate(matrix):
+            if not np.isnan(value):
+                axes.text(j, i, f"{value:.1f}", ha="center", va="center", color="white", fontsize=7)
+    axes.set_xticks(range(num_tasks), [str(j + 1) for j in range(num_tasks)])
+    axes.set_yticks(range(len(matrix)), [str(i + 1) for i in range(len(matrix))])
+    for j, label in enumerate(axes.get_xticklabels()):
+        label.set_color(task_colour_float(j))
+        label.set_fontweight("bold")
+    axes.set_xlabel("test task j")
+    axes.set_ylabel("after task i")
+    return image

@@ -1,0 +1,165 @@
+"""`continual-nerf-viewer`: a finished or stopped continual run in the viewer, task by task.
+
+    continual-nerf-viewer --load-config outputs/<experiment>/continual-ngp/<timestamp>/config.yml
+
+nerfstudio's viewer (live render, render and export tabs) on 127.0.0.1, plus a "Continual learning" panel: the
+training cameras in their task colours, the accuracy matrix, and a task slider that loads the checkpoint written at
+the end of each task, so forgetting (or its absence) shows in the same view.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from threading import Lock
+from typing import Dict
+
+import tyro
+import viser
+from nerfstudio.pipelines.base_pipeline import Pipeline
+from nerfstudio.utils.eval_utils import eval_setup
+from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.viewer.viewer import Viewer
+from nerfstudio.viewer.viewer_elements import ViewerSlider, ViewerText
+
+from continual_nerf.checkpoints import read_checkpoint
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_dataset import ContinualDataset
+from continual_nerf.errors import ContinualNerfError
+from continual_nerf.nerfstudio_compat import (
+    disable_training_buttons,
+    init_scene_without_frustums,
+    panel_order,
+    rerender,
+    set_render_defaults,
+    show_step,
+    without_lpips,
+)
+from continual_nerf.viewer.continual_panel import PANEL_LABEL, TaskPictures, frame_view, mean_psnr_text
+from continual_nerf.viewer.task_cameras import TaskCameras, framing_view
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
+
+
+def task_checkpoints(checkpoint_dir: Path, accuracy: AccuracyMatrix) -> Dict[int, Path]:
+    """The checkpoint written at the end of each task (0-based), by the step of its accuracy-matrix row."""
+    paths = {task: checkpoint_dir / f"step-{step:09d}.ckpt" for task, step in enumerate(accuracy.steps)}
+    return {task: path for task, path in paths.items() if path.is_file()}
+
+
+class TaskTravel:
+    """The finished run's panel: a task slider loading that task's checkpoint, its cameras, pictures and mean."""
+
+    def __init__(
+        self,
+        viewer: Viewer,
+        pipeline: Pipeline,
+        lock: Lock,
+        accuracy: AccuracyMatrix,
+        checkpoint_dir: Path,
+        options: ContinualViewerConfig,
+    ) -> None:
+        self.viewer = viewer
+        self.pipeline = pipeline
+        self.lock = lock
+        """The viewer renders under this lock; weights are swapped under it too."""
+        self.accuracy = accuracy
+        self.checkpoints = task_checkpoints(checkpoint_dir, accuracy)
+        dataset = pipeline.datamanager.train_dataset
+        assert isinstance(dataset, ContinualDataset)
+        self.dataset = dataset
+        last = max(self.checkpoints) + 1
+        self.slider = ViewerSlider(
+            "Task",
+            last,
+            1,
+            max(len(accuracy.steps), 2),  # viser's slider needs a range
+            1,
+            cb_hook=lambda slider: self.show_task(int(slider.value) - 1),
+            disabled=len(accuracy.steps) < 2,
+            hint="Load the checkpoint written at the end of this task",
+        )
+        self.checkpoint = ViewerText("Checkpoint", "", disabled=True, hint="The checkpoint the render comes from")
+        self.mean_psnr = ViewerText("Mean test PSNR", "", disabled=True, hint="Over the tasks seen after this task")
+        init_scene_without_frustums(viewer, dataset, "completed")
+        set_render_defaults(viewer, options.max_res, options.train_util)
+        self.cameras = TaskCameras(viewer, dataset, options.camera_frustum_scale)
+        server = viewer.viser_server
+        with server.gui.add_folder(PANEL_LABEL, order=panel_order(viewer)):
+            self.slider.install(server)
+            self.checkpoint.install(server)
+            self.pictures = TaskPictures(server)
+            self.mean_psnr.install(server)
+        server.on_client_connect(self._frame_new_client)
+        disable_training_buttons(viewer)
+        self.show_task(last - 1)
+
+    def _frame_new_client(self, client: viser.ClientHandle) -> None:
+        frame_view(client, framing_view(self.dataset, range(len(self.dataset)), client.camera.fov))
+
+    def show_task(self, task: int) -> None:
+        """Render from the checkpoint of the end of `task` (0-based) and show what was known then."""
+        path = self.checkpoints.get(task)
+        if path is None:
+            self.checkpoint.value = f"none written at the end of task {task + 1}"
+            return
+        state = read_checkpoint(path)
+        with self.lock:
+            self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.checkpoint.value = f"{path.name} (end of task {task + 1})"
+        self.mean_psnr.value = mean_psnr_text(self.accuracy.mean_psnr[: task + 1])
+        self.pictures.show(self.accuracy.num_tasks, self.accuracy.psnr[: task + 1])
+        self.cameras.show(self.dataset, task)
+        show_step(self.viewer, int(state["step"]))
+        rerender(self.viewer)
+
+
+@dataclass
+class ContinualRunViewer:
+    """Open a finished or stopped continual run in the viewer, with a task slider over its per-task checkpoints."""
+
+    load_config: Path
+    """The run's config.yml: outputs/<experiment>/<method>/<timestamp>/config.yml."""
+    viewer: ContinualViewerConfig = field(default_factory=ContinualViewerConfig)
+    """Viewer options; it listens on 127.0.0.1 (--viewer.websocket-host 0.0.0.0 opens it to the network)."""
+
+    def start(self) -> TaskTravel:
+        """Load the run and start the viewer with its panel; returns once the viewer answers."""
+        with without_lpips():  # nerfstudio's models build LPIPS at set-up, which would download weights
+            config, pipeline, _, _ = eval_setup(self.load_config, test_mode="test")
+        base_dir = self.load_config.parent
+        accuracy_path = base_dir / ACCURACY_MATRIX_FILENAME
+        if not accuracy_path.is_file():
+            raise ContinualNerfError(f"{accuracy_path}: not found; is {self.load_config} a continual run's config?")
+        accuracy = AccuracyMatrix.read(accuracy_path)
+        if not task_checkpoints(config.get_checkpoint_dir(), accuracy):
+            raise ContinualNerfError(f"{config.get_checkpoint_dir()}: no checkpoint written at the end of a task")
+        lock = Lock()
+        viewer = Viewer(
+            self.viewer,
+            log_filename=base_dir / self.viewer.relative_log_filename,
+            datapath=pipeline.datamanager.get_datapath(),
+            pipeline=pipeline,
+            train_lock=lock,
+        )
+        travel = TaskTravel(viewer, pipeline, lock, accuracy, config.get_checkpoint_dir(), self.viewer)
+        CONSOLE.print(viewer.viewer_info[0])
+        return travel
+
+    def main(self) -> None:
+        try:
+            self.start()
+        except ContinualNerfError as error:
+            raise SystemExit(f"continual-nerf-viewer: error: {error}") from None
+        CONSOLE.print("Use ctrl+c to quit", justify="center")
+        while True:
+            time.sleep(1.0)
+
+
+def entrypoint() -> None:
+    # booleans as `--option True/False`, as ns-train and ns-viewer take them
+    tyro.cli(tyro.conf.FlagConversionOff[ContinualRunViewer]).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,119 @@
+"""What a real capture adds to the demo's exact renders: exposure and white balance that change along the capture,
+cameras of a rig that respond to colour differently, and poses that are slightly wrong.
+
+Each effect draws from its own random stream (seeded by the scene's seed and the effect), so an effect that is off
+draws nothing and the scene, its path and the other effects stay as they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+EXPOSURE_STREAM, RESPONSE_STREAM, POSE_STREAM = 1, 2, 3
+"""Random streams of the effects: numpy.random.default_rng([seed, stream])."""
+TINT_SHARE = 1 / 3
+"""White balance changes by this share of the exposure strength per channel."""
+DRIFT_SHARE = 1 / 5
+"""Within a segment, exposure drifts smoothly by up to this share of the exposure strength."""
+GAMMA_SHARE = 1 / 2
+"""A camera's gamma departs from 1 by up to this share of the response strength."""
+NOISE_CYCLES = (0.5, 3.0)
+"""Pose errors are sums of sinusoids of this many cycles per capture (smooth, like drift or latency)."""
+
+
+def effect_rng(seed: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng([seed, stream])
+
+
+def exposure_gains(num_instants: int, segments: int, strength: float, rng: np.random.Generator) -> np.ndarray:
+    """(num_instants, 3) per-channel gains: per segment of the capture an exposure level in [1 - strength,
+    1 + strength] and a white-balance tint, times a smooth drift along the capture."""
+    segment = np.zeros(num_instants, dtype=int)
+    for index, span in enumerate(np.array_split(np.arange(num_instants), segments)):
+        segment[span] = index
+    level = rng.uniform(1 - strength, 1 + strength, size=segments)
+    tint = rng.uniform(1 - TINT_SHARE * strength, 1 + TINT_SHARE * strength, size=(segments, 3))
+    along = np.linspace(0.0, 1.0, num_instants)
+    drift = 1 + DRIFT_SHARE * strength * np.sin(np.pi * segments * along + rng.uniform(0, 2 * np.pi))
+    return level[segment, None] * tint[segment] * drift[:, None]
+
+
+@dataclass(frozen=True)
+class CameraResponse:
+    """How one camera turns scene colour into pixel values: value = gain * colour ** gamma, per channel."""
+
+    gain: np.ndarray
+    """(3,) per-channel gain."""
+    gamma: float
+    """Exponent applied before the gain."""
+
+
+NEUTRAL = CameraResponse(gain=np.ones(3), gamma=1.0)
+"""A camera that records colour as it is."""
+
+
+def camera_responses(num_cameras: int, strength: float, rng: np.random.Generator) -> list[CameraResponse]:
+    """A response per camera: gains within 1 +- strength per channel, gamma within 1 +- strength / 2."""
+    return [
+        CameraResponse(
+            gain=rng.uniform(1 - strength, 1 + strength, size=3),
+            gamma=float(rng.uniform(1 - GAMMA_SHARE * strength, 1 + GAMMA_SHARE * strength)),
+        )
+        for _ in range(num_cameras)
+    ]
+
+
+def captured(image: np.ndarray, gain: np.ndarray, response: CameraResponse) -> np.ndarray:
+    """The uint8 image a camera with `response` records of the exact `image` (uint8) at exposure `gain` (3,)."""
+    colour = image.astype(np.float64) / 255
+    value = gain * response.gain * colour**response.gamma
+    return np.round(np.clip(value, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def smooth_curves(num_instants: int, dims: int, rng: np.random.Generator) -> np.ndarray:
+    """(num_instants, dims) sums of three sinusoids along the capture, scaled to a root mean square norm of 1."""
+    along = np.linspace(0.0, 1.0, num_instants)[:, None, None]
+    cycles = rng.uniform(*NOISE_CYCLES, size=(1, dims, 3))
+    phases = rng.uniform(0, 2 * np.pi, size=(1, dims, 3))
+    curves = np.sin(2 * np.pi * cycles * along + phases).sum(axis=-1)
+    return curves / np.sqrt((curves**2).sum(axis=-1).mean())
+
+
+def trajectory_length(positions: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=-1).sum())
+
+
+def noisy_poses(
+    poses: np.ndarray, instants: np.ndarray, degrees: float, translation: float, rng: np.random.Generator
+) -> np.ndarray:
+    """`poses` (N, 3, 4) with a smooth error per capture instant (a rig's cameras share it): a rotation of root mean
+    square angle `degrees` about the camera centre and a shift of root mean square length `translation` times the
+    trajectory's length."""
+    num_instants = int(instants.max()) + 1
+    first_of_instant = np.unique(instants, return_index=True)[1]
+    length = trajectory_length(poses[first_of_instant, :, 3])
+    rotations = rotation_matrices(np.deg2rad(degrees) * smooth_curves(num_instants, 3, rng))
+    shifts = translation * length * smooth_curves(num_instants, 3, rng)
+    noisy = poses.copy()
+    noisy[:, :, :3] = rotations[instants] @ poses[:, :, :3]
+    noisy[:, :, 3] += shifts[instants]
+    return noisy
+
+
+def rotation_matrices(rotation_vectors: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations about the axes of (N, 3) vectors by their lengths (radians): Rodrigues' formula."""
+    angle = np.linalg.norm(rotation_vectors, axis=-1)[:, None, None]
+    x, y, z = (rotation_vectors / np.maximum(angle[:, :, 0], 1e-12)).T
+    zero = np.zeros_like(x)
+    cross = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(-1, 3, 3)
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def pose_errors(estimated: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pose of (N, 3, 4) camera-to-world matrices: the rotation error (degrees) and the distance between the
+    camera centres."""
+    relative = np.swapaxes(true[:, :, :3], 1, 2) @ estimated[:, :, :3]
+    cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    return np.rad2deg(np.arccos(cosine)), np.linalg.norm(estimated[:, :, 3] - true[:, :, 3], axis=-1)

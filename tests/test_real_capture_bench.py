@@ -1,0 +1,38 @@
+"""The pose errors python -m continual_nerf.bench.real_capture reports: after the rigid motion that fits best."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import rotation
+
+from continual_nerf.bench.real_capture import fitted_onto, rms_errors
+from continual_nerf.dataparsers import demo_capture
+
+
+def trajectory(count: int = 30) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    poses = np.zeros((count, 3, 4))
+    for i in range(count):
+        poses[i, :, :3] = rotation(rng.normal(size=3), rng.uniform(0, np.pi))
+        poses[i, :, 3] = [0.1 * i, np.sin(i / 5), 0.2 * np.cos(i / 3)]
+    return poses
+
+
+def test_a_trajectory_moved_as_a_whole_has_no_error():
+    true = trajectory()
+    moved = true.copy()
+    turn = rotation(np.array([1.0, 2.0, 0.5]), 0.7)
+    moved[:, :, :3] = turn @ true[:, :, :3]
+    moved[:, :, 3] = true[:, :, 3] @ turn.T + [3.0, -1.0, 2.0]
+    np.testing.assert_allclose(fitted_onto(moved, true), true, atol=1e-9)
+    assert rms_errors(moved, true, length=1.0) == pytest.approx((0.0, 0.0), abs=1e-5)
+
+
+def test_errors_within_the_trajectory_remain():
+    true = trajectory()
+    rng = np.random.default_rng(1)
+    noisy = demo_capture.noisy_poses(true, np.arange(len(true)), 2.0, 0.05, rng)
+    length = demo_capture.trajectory_length(true[:, :, 3])
+    degrees, percent = rms_errors(noisy, true, length)
+    assert 0.3 < degrees < 3.0 and 0.5 < percent < 6.0, "the best fit removes only what the whole trajectory shares"
