@@ -9,6 +9,7 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 from __future__ import annotations
 
 import dataclasses
+import signal
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional
@@ -29,6 +30,7 @@ from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
 
+from continual_nerf.core.interrupts import EXIT_CODES
 from continual_nerf.errors import first_line
 
 __all__ = ["VISER_NERFSTUDIO_SCALE_RATIO"]
@@ -247,12 +249,22 @@ def launch_processes_here() -> None:
 
 
 def launch_reporting_one_line(**launch_arguments: Any) -> None:
-    """nerfstudio's `launch`; a failed process ends the run with one line (mp.spawn has stopped the others)."""
+    """nerfstudio's `launch`; a failed process ends the run with one line (mp.spawn has stopped the others).
+
+    Ctrl-C reaches the processes too, and they answer it (process 0 checkpoints the step and prints how to resume):
+    the launching process ignores it meanwhile, as nerfstudio's launch would stop them at once, and then exits with
+    their code.
+    """
+    answered_by_processes = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         _nerfstudio_launch[0](**launch_arguments)
     except (ProcessExitedException, ProcessRaisedException) as error:
+        if isinstance(error, ProcessExitedException) and error.exit_code in EXIT_CODES.values():
+            raise SystemExit(error.exit_code) from None
         method = launch_arguments["config"].method_name
         raise SystemExit(f"{method}: error: {first_line(error)}; the other processes were stopped") from None
+    finally:
+        signal.signal(signal.SIGINT, answered_by_processes)
 
 
 def process_worker(

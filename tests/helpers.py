@@ -695,19 +695,18 @@ def _die_after_second_iteration(step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
+def two_process_command(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> List[str]:
     """launch_two_processes in a fresh interpreter (as ns-train runs), with tiny_config's options and `options`:
     datamanager options, and recorded_train_loop's (slow_rank, slow_seconds, dying_rank)."""
     script = "import json, sys; sys.path.insert(0, sys.argv[1]); import helpers; helpers.launch_from_json(sys.argv[2])"
     arguments = json.dumps({"output_dir": str(output_dir), "timeout_seconds": timeout_seconds, **options})
-    return subprocess.run(
-        [sys.executable, "-c", script, str(Path(__file__).parent), arguments],
-        check=False,
-        env=SUBPROCESS_ENV,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    return [sys.executable, "-c", script, str(Path(__file__).parent), arguments]
+
+
+def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
+    """two_process_command, run to its end."""
+    command = two_process_command(output_dir, timeout_seconds, **options)
+    return subprocess.run(command, check=False, env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600)
 
 
 def launch_from_json(arguments: str) -> None:

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 import socket
+import subprocess
 import time
 from pathlib import Path
 from typing import Any, Dict
@@ -14,10 +17,12 @@ import torch
 import torch.multiprocessing
 from helpers import (
     RANK_RECORDS,
+    SUBPROCESS_ENV,
     collectives_probe,
     demo_parser,
     tiny_config,
     train,
+    two_process_command,
     two_process_run,
     two_process_run_dir,
 )
@@ -119,3 +124,20 @@ def test_start_paused_is_refused_with_several_processes(tmp_path: Path):
     config.machine.num_devices = 2
     with pytest.raises(ContinualConfigError, match="--start-paused needs one process"):
         config.validate()
+
+
+def test_ctrl_c_stops_both_ranks_at_one_step_that_rank_0_saves(tmp_path: Path):
+    command = two_process_command(tmp_path, num_tasks=2, iterations_per_task=10**4)
+    # its own session: Ctrl-C in a terminal reaches the launching process and both ranks alike
+    run = subprocess.Popen(command, env=SUBPROCESS_ENV, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    results = two_process_run_dir(tmp_path) / ACCURACY_MATRIX_FILENAME
+    deadline = time.monotonic() + 300
+    while not results.exists() and time.monotonic() < deadline:  # rank 0 writes it as training starts
+        time.sleep(0.5)
+    time.sleep(5)
+    os.killpg(run.pid, signal.SIGINT)
+    _, stderr = run.communicate(timeout=120)
+    assert run.returncode == 130, stderr[-3000:]
+    assert "continual-ngp: interrupted by SIGINT: step " in stderr and "Traceback" not in stderr
+    assert AccuracyMatrix.read(results).status == "interrupted"
+    assert checkpoint_steps(two_process_run_dir(tmp_path) / "nerfstudio_models")
