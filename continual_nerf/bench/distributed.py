@@ -18,12 +18,13 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Literal, Tuple
+from typing import List, Tuple
 
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
+from continual_nerf.bench.demo_runs import DemoBenchmark
 from continual_nerf.checkpoints import checkpoint_steps, read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.task_split import split_into_tasks
@@ -49,21 +50,17 @@ class Measured:
 
 
 @dataclass
-class DistributedBenchmark:
+class DistributedBenchmark(DemoBenchmark):
     """Trains continual-ngp on the demo with each process count in turn, through ns-train."""
 
     processes: Tuple[int, ...] = (1, 2)
     """Process counts (--machine.num-devices) to compare."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Device type of every process."""
     num_tasks: int = 3
     """Tasks of the demo trajectory."""
     iterations_per_task: int = 40
     """Training iterations per task, the same for every process count."""
     rays_per_batch: int = 512
     """Rays per batch of each process: N processes train on N times as many per step."""
-    data: Path = Path("data/continual-demo")
-    """Where the demo scene is generated (and reused from)."""
 
     def command(self, processes: int, output_dir: Path) -> List[str]:
         options = {
