@@ -15,6 +15,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 import zipfile
 import zlib
@@ -658,10 +659,12 @@ def recorded_train_loop(
     slow_rank: int = -1,
     slow_seconds: float = 0.0,
     dying_rank: int = -1,
+    pausing_seconds: float = 0.0,
 ) -> None:
     """nerfstudio's train_loop (seeded per rank, set up, trained) that records, at each task switch, the step, this
     rank's budget and the replay oracle's weights; `slow_rank` sleeps `slow_seconds` after each iteration, outside
-    the budget's clock; `dying_rank` kills itself after its second iteration."""
+    the budget's clock; `dying_rank` kills itself after its second iteration; `pausing_seconds`: rank 0 is paused
+    from another thread (as by the viewer's button) during its second iteration, for that long."""
     seed_like_ns_train(config.machine.seed + global_rank)
     trainer = config.setup(local_rank=local_rank, world_size=world_size)
     trainer.setup()
@@ -685,9 +688,24 @@ def recorded_train_loop(
         trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
     if global_rank == dying_rank:
         trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
+    if global_rank == 0 and pausing_seconds:
+        before = [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
+        trainer.callbacks.append(TrainingCallback(before, functools.partial(_pause, trainer, pausing_seconds)))
     trainer.train()
     summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
     (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
+
+
+def _pause(trainer: ContinualTrainer, seconds: float, step: int) -> None:
+    """At step 1, pause `trainer` from another thread for `seconds`, as the viewer's Pause and Resume buttons do."""
+
+    def pause_and_resume() -> None:
+        trainer.training_state = "paused"
+        time.sleep(seconds)
+        trainer.training_state = "training"
+
+    if step == 1:
+        threading.Thread(target=pause_and_resume, daemon=True).start()
 
 
 def _die_after_second_iteration(step: int) -> None:
@@ -712,7 +730,8 @@ def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: 
 def launch_from_json(arguments: str) -> None:
     """two_process_run's side in the fresh interpreter."""
     options = json.loads(arguments)
-    recording = {name: options.pop(name) for name in ("slow_rank", "slow_seconds", "dying_rank") if name in options}
+    recorded = ("slow_rank", "slow_seconds", "dying_rank", "pausing_seconds")
+    recording = {name: options.pop(name) for name in recorded if name in options}
     timeout_seconds = options.pop("timeout_seconds")
     config = tiny_config(Path(options.pop("output_dir")), demo_parser(), **options.pop("tiny", {}))
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **options)

@@ -106,6 +106,16 @@ def test_a_seconds_budget_switches_both_ranks_at_the_same_step(tmp_path: Path):
     assert main[0]["seconds_done"] >= 1.5 > other[0]["seconds_done"]  # rank 0 decided; rank 1 followed
 
 
+def test_a_viewer_pause_longer_than_the_timeout_holds_both_ranks(tmp_path: Path):
+    # nerfstudio's loop would stop rank 0 alone, and rank 1 would give up in the next all-reduce after 10 s
+    started = time.monotonic()
+    run = two_process_run(tmp_path, timeout_seconds=10, num_tasks=2, iterations_per_task=3, pausing_seconds=15)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert time.monotonic() - started > 15
+    run_dir = two_process_run_dir(tmp_path)
+    assert records(run_dir, 0)["last_step"] == records(run_dir, 1)["last_step"] == 5
+
+
 def test_a_dying_rank_ends_the_run_with_one_line(tmp_path: Path):
     started = time.monotonic()
     run = two_process_run(tmp_path, timeout_seconds=20, num_tasks=2, iterations_per_task=20, dying_rank=1)

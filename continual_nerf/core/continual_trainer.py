@@ -41,6 +41,8 @@ from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
+TrainingState = Literal["training", "paused", "completed"]
+
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
 
@@ -136,8 +138,11 @@ class ContinualTrainer(Trainer):
 
     config: ContinualTrainerConfig
     pipeline: ContinualPipeline
+    _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        self.pause_requested = False
+        """With several processes: the viewer asked for a pause, which starts at the end of the iteration."""
         super().__init__(config, local_rank, world_size)
         self.panel: Optional[ContinualPanel] = None
         """The viewer's continual-learning panel, when the viewer runs."""
@@ -157,7 +162,9 @@ class ContinualTrainer(Trainer):
         ]
         if distributed.is_distributed():  # after the panel's: a pause it starts at a task's end holds every rank
             self.callbacks.append(
-                TrainingCallback([location.AFTER_TRAIN_ITERATION], distributed.hold_while_paused, args=[self])
+                TrainingCallback(
+                    [location.AFTER_TRAIN_ITERATION], distributed.hold_while_paused, args=[self, self.pause_now]
+                )
             )
 
     def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
@@ -183,6 +190,27 @@ class ContinualTrainer(Trainer):
             progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
         )
         show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    @property
+    def training_state(self) -> TrainingState:
+        return self._training_state
+
+    @training_state.setter
+    def training_state(self, state: TrainingState) -> None:
+        # with several processes a pause (the viewer's button, from its own thread) starts at the end of an
+        # iteration, where every process learns of it (hold_while_paused); nerfstudio's loop, seeing it sooner, would
+        # stop process 0 alone while the others wait in the next gradient all-reduce
+        if state == "paused" and distributed.is_distributed():
+            self.pause_requested = True
+        else:
+            self._training_state = state
+
+    def pause_now(self) -> bool:
+        """Whether training pauses (or stays paused) from this iteration's end: what hold_while_paused holds on."""
+        if self.pause_requested:
+            self._training_state = "paused"
+            self.pause_requested = False
+        return self._training_state == "paused" and not self.stop_training
 
     def _install_panel(self, viewer: Viewer) -> ContinualPanel:
         """The continual panel, in the viewer from the moment it answers (before the model compiles)."""

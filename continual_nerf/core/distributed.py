@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from enum import IntEnum
-from typing import Dict, Union
+from typing import Callable, Dict, Union
 
 import torch
 import torch.distributed as dist
@@ -95,8 +95,8 @@ def data_parallel(model: nn.Module) -> nn.Module:
     return DistributedDataParallel(model, find_unused_parameters=True)
 
 
-def hold_while_paused(trainer: Trainer, step: int) -> None:
-    """Keep every rank here while the viewer (on rank 0) pauses training.
+def hold_while_paused(trainer: Trainer, paused: Callable[[], bool], step: int) -> None:
+    """Keep every rank here while the viewer (on rank 0) pauses training: `paused()` says so on rank 0.
 
     Rank 0 would otherwise wait in nerfstudio's loop while the others block in the next step's gradient all-reduce,
     which the process group's timeout ends. Here rank 0 keeps telling them, every PAUSE_POLL_SECONDS, whether the
@@ -105,7 +105,7 @@ def hold_while_paused(trainer: Trainer, step: int) -> None:
     if not is_distributed():
         return
     device = trainer.pipeline.device
-    while decided_by_main(int(trainer.training_state == "paused" and not trainer.stop_training), device):
+    while decided_by_main(int(is_main() and paused()), device):
         trainer.train_lock.release()  # held around the training callbacks; the viewer renders under it
         try:
             time.sleep(PAUSE_POLL_SECONDS)
