@@ -664,7 +664,7 @@ def recorded_train_loop(
     """nerfstudio's train_loop (seeded per rank, set up, trained) that records, at each task switch, the step, this
     rank's budget and the replay oracle's weights; `slow_rank` sleeps `slow_seconds` after each iteration, outside
     the budget's clock; `dying_rank` kills itself after its second iteration; `pausing_seconds`: rank 0 is paused
-    from another thread (as by the viewer's button) during its second iteration, for that long."""
+    for that long, as by the viewer's button, the moment its second iteration's callbacks are done."""
     seed_like_ns_train(config.machine.seed + global_rank)
     trainer = config.setup(local_rank=local_rank, world_size=world_size)
     trainer.setup()
@@ -688,24 +688,23 @@ def recorded_train_loop(
         trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
     if global_rank == dying_rank:
         trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
-    if global_rank == 0 and pausing_seconds:
-        before = [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
-        trainer.callbacks.append(TrainingCallback(before, functools.partial(_pause, trainer, pausing_seconds)))
+    if global_rank == 0 and pausing_seconds:  # after every callback of the trainer's own
+        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds)))
     trainer.train()
     summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
     (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
 
 
 def _pause(trainer: ContinualTrainer, seconds: float, step: int) -> None:
-    """At step 1, pause `trainer` from another thread for `seconds`, as the viewer's Pause and Resume buttons do."""
+    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do."""
 
-    def pause_and_resume() -> None:
-        trainer.training_state = "paused"
+    def resume() -> None:
         time.sleep(seconds)
         trainer.training_state = "training"
 
     if step == 1:
-        threading.Thread(target=pause_and_resume, daemon=True).start()
+        trainer.training_state = "paused"
+        threading.Thread(target=resume, daemon=True).start()
 
 
 def _die_after_second_iteration(step: int) -> None:
