@@ -8,6 +8,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Dict
@@ -70,6 +71,9 @@ def test_two_processes_train_every_task_into_one_accuracy_matrix(two_process_out
     assert main["last_step"] == other["last_step"]
     checkpoint = read_checkpoint(max(checkpoint_steps(run_dir / "nerfstudio_models").values()))
     assert not [key for key in checkpoint["pipeline"] if ".module." in key]  # the unwrapped model, as one process
+    ns_eval = [str(Path(sys.executable).with_name("ns-eval")), "--load-config", str(run_dir / "config.yml")]
+    evaluated = subprocess.run([*ns_eval, "--output-path", str(run_dir / "eval.json")], env=SUBPROCESS_ENV, check=False)
+    assert evaluated.returncode == 0 and "psnr" in json.loads((run_dir / "eval.json").read_text())["results"]
 
 
 def test_both_ranks_hold_the_same_oracle_after_every_switch(two_process_output: Path):
