@@ -11,7 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, List, cast
 
 import pytest
 import torch
@@ -30,7 +30,9 @@ from helpers import (
 
 from continual_nerf.checkpoints import checkpoint_steps, read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.streaming.capture_folder import CaptureTasks, StreamFrame
 
 pytestmark = pytest.mark.slow  # trains models in subprocesses
 
@@ -155,3 +157,13 @@ def test_ctrl_c_stops_both_ranks_at_one_step_that_rank_0_saves(tmp_path: Path):
     assert "continual-ngp: interrupted by SIGINT: step " in stderr and "Traceback" not in stderr
     assert AccuracyMatrix.read(results).status == "interrupted"
     assert checkpoint_steps(two_process_run_dir(tmp_path) / "nerfstudio_models")
+
+
+def test_a_rank_cuts_the_capture_where_rank_0_cut_it(tmp_path: Path):
+    capture = CaptureTasks(StreamDataParserConfig(data=tmp_path))
+    frames = cast(List[StreamFrame], [f"{index:06d}.json" for index in range(10)])
+    # rank 0 closed task 2 after 4 frames ("Next task now"); this rank read on, and --frames-per-task closed it at 6
+    capture.tasks, capture.collecting = [frames[:3], frames[3:9]], frames[9:]
+    assert capture.frames_from(1) == 7
+    capture.cut_task(1, 4)
+    assert capture.tasks == [frames[:3], frames[3:7]] and capture.collecting == frames[7:]
