@@ -9,8 +9,10 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 from __future__ import annotations
 
 import dataclasses
-from contextlib import contextmanager
-from typing import Any, Callable, Dict, Iterator, List, Optional
+import signal
+from contextlib import ExitStack, contextmanager
+from datetime import timedelta
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional
 from unittest import mock
 
 import msgspec
@@ -26,6 +28,10 @@ from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
+from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
+
+from continual_nerf.core.interrupts import EXIT_CODES
+from continual_nerf.errors import first_line
 
 __all__ = ["VISER_NERFSTUDIO_SCALE_RATIO"]
 
@@ -211,6 +217,93 @@ def show_resume_button(viewer: Viewer) -> None:
     """
     if viewer.pause_train.visible:
         viewer.toggle_pause_button()
+
+
+def world_size_for_vanilla_pipeline(device: str, world_size: int) -> int:
+    """The world size to hand `VanillaPipeline.__init__`: 1 for CPU processes, whose model the plugin wraps itself.
+
+    Depends on: `VanillaPipeline.__init__` wrapping the model in `DDP(model, device_ids=[local_rank])` and calling
+    `dist.barrier(device_ids=[local_rank])` when world_size > 1, both refused for a CPU model under gloo, and using
+    world_size for nothing else (its datamanager only sizes dataloader workers with it).
+    """
+    return world_size if torch.device(device).type == "cuda" else 1
+
+
+_nerfstudio_launch: List[Callable[..., None]] = []
+"""nerfstudio's `launch`, once `launch_processes_here` has replaced it."""
+
+
+def launch_processes_here() -> None:
+    """Route `ns-train --machine.num-devices N` (N > 1) through `process_worker` and `launch_reporting_one_line`.
+
+    Depends on: `nerfstudio.scripts.train.main` calling `config.save_config()` right before `launch(...)` (with
+    keyword arguments), and `main` and `launch` looking up `launch` and `_distributed_worker` among the module's
+    globals when they run. mp.spawn pickles the worker by name: the spawned processes import it from this module.
+    """
+    from nerfstudio.scripts import train
+
+    if not _nerfstudio_launch:
+        _nerfstudio_launch.append(train.launch)
+        train.launch = launch_reporting_one_line
+        train._distributed_worker = process_worker
+
+
+def launch_reporting_one_line(**launch_arguments: Any) -> None:
+    """nerfstudio's `launch`; a failed process ends the run with one line (mp.spawn has stopped the others).
+
+    Ctrl-C reaches the processes too, and they answer it (process 0 checkpoints the step and prints how to resume):
+    the launching process ignores it meanwhile, as nerfstudio's launch would stop them at once, and then exits with
+    their code.
+    """
+    answered_by_processes = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        _nerfstudio_launch[0](**launch_arguments)
+    except (ProcessExitedException, ProcessRaisedException) as error:
+        if isinstance(error, ProcessExitedException) and error.exit_code in EXIT_CODES.values():
+            raise SystemExit(error.exit_code) from None
+        method = launch_arguments["config"].method_name
+        raise SystemExit(f"{method}: error: {first_line(error)}; the other processes were stopped") from None
+    finally:
+        signal.signal(signal.SIGINT, answered_by_processes)
+
+
+def process_worker(
+    local_rank: int,
+    main_func: Callable[..., Any],
+    world_size: int,
+    num_devices_per_machine: int,
+    machine_rank: int,
+    dist_url: str,
+    config: Any,
+    timeout: timedelta,
+    device_type: Literal["cpu", "cuda", "mps"] = "cuda",
+) -> Any:
+    """nerfstudio's `_distributed_worker` (process group, local group, `main_func`), which on CPU skips its CUDA
+    checks; an error ends the process with one line naming its rank.
+
+    Depends on: `_distributed_worker` taking these arguments and asserting `torch.cuda.is_available()` and
+    `num_devices_per_machine <= torch.cuda.device_count()` before it calls `main_func`, whatever the device type.
+    """
+    from nerfstudio.scripts.train import _distributed_worker
+
+    cuda_checks = ExitStack()
+    if device_type != "cuda":
+        cuda_checks.enter_context(mock.patch.object(torch.cuda, "is_available", return_value=True))
+        cuda_checks.enter_context(mock.patch.object(torch.cuda, "device_count", return_value=num_devices_per_machine))
+
+    def train_without_cuda_checks(*args: Any) -> Any:
+        cuda_checks.close()  # training sees the machine as it is
+        return main_func(*args)
+
+    rank = machine_rank * num_devices_per_machine + local_rank
+    try:
+        with cuda_checks:
+            return _distributed_worker(
+                local_rank, train_without_cuda_checks, world_size, num_devices_per_machine, machine_rank, dist_url,
+                config, timeout, device_type,
+            )  # fmt: skip
+    except Exception as error:
+        raise SystemExit(f"{config.method_name}: error: process {rank}: {first_line(error)}") from None
 
 
 def remove_frustum(viewer: Viewer, frame: int) -> None:

@@ -7,17 +7,21 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import functools
 import io
 import json
 import os
+import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 import zipfile
 import zlib
+from datetime import timedelta
 from pathlib import Path
-from typing import BinaryIO, Dict, List, Optional, Sequence
+from typing import Any, BinaryIO, Dict, List, Optional, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -29,6 +33,7 @@ from nerfstudio.data.dataparsers.base_dataparser import (
     transform_poses_to_original_space,
 )
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from PIL import Image
 
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
@@ -39,6 +44,7 @@ from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDa
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
 from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.nerfstudio_compat import seed_like_ns_train
 from continual_nerf.recipes import quiet_config, train_like_ns_train
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
@@ -621,6 +627,138 @@ def corrupt(path: Path, offset: int) -> None:
     data = bytearray(path.read_bytes())
     data[offset] ^= 0x01
     path.write_bytes(bytes(data))
+
+
+# ---- several processes (nerfstudio's launcher, gloo on CPU) ----
+
+RANK_RECORDS = "rank-records"
+"""Folder of a multi-process test run where each rank writes what it did (recorded_train_loop)."""
+
+
+def launch_two_processes(config: ContinualTrainerConfig, timeout_seconds: float, **recording: Any) -> None:
+    """What `ns-train --machine.num-devices 2` does with `config`: save it, then nerfstudio's `launch` with its
+    process-group timeout shortened; every rank runs recorded_train_loop with `recording`'s options."""
+    from nerfstudio.scripts import train
+
+    config.machine.num_devices = 2
+    config.save_config()  # routes the processes through the plugin's worker, as ns-train's main does
+    train.launch(
+        main_func=functools.partial(recorded_train_loop, **recording),
+        num_devices_per_machine=2,
+        config=config,
+        timeout=timedelta(seconds=timeout_seconds),
+        device_type=config.machine.device_type,
+    )
+
+
+def recorded_train_loop(
+    local_rank: int,
+    world_size: int,
+    config: ContinualTrainerConfig,
+    global_rank: int = 0,
+    slow_rank: int = -1,
+    slow_seconds: float = 0.0,
+    dying_rank: int = -1,
+    pausing_seconds: float = 0.0,
+) -> None:
+    """nerfstudio's train_loop (seeded per rank, set up, trained) that records, at each task switch, the step, this
+    rank's budget and the replay oracle's weights; `slow_rank` sleeps `slow_seconds` after each iteration, outside
+    the budget's clock; `dying_rank` kills itself after its second iteration; `pausing_seconds`: rank 0 is paused
+    for that long, as by the viewer's button, the moment its second iteration's callbacks are done."""
+    seed_like_ns_train(config.machine.seed + global_rank)
+    trainer = config.setup(local_rank=local_rank, world_size=world_size)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    records_dir = trainer.base_dir / RANK_RECORDS
+    records_dir.mkdir(parents=True, exist_ok=True)
+    switches: List[Dict[str, Any]] = []
+    open_next_task = pipeline.open_next_task
+
+    def recorded_switch() -> None:
+        budget = pipeline.budget
+        switches.append({"step": trainer.step, "seconds_done": budget.seconds_done, "seconds": budget.seconds})
+        open_next_task()
+        oracle = pipeline.replay_oracle.model
+        assert oracle is not None
+        torch.save(oracle.state_dict(), records_dir / f"oracle-rank{global_rank}-switch{len(switches)}.pt")
+
+    setattr(pipeline, "open_next_task", recorded_switch)
+    after = [TrainingCallbackLocation.AFTER_TRAIN_ITERATION]
+    if global_rank == slow_rank:
+        trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
+    if global_rank == dying_rank:
+        trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
+    if global_rank == 0 and pausing_seconds:  # after every callback of the trainer's own
+        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds)))
+    trainer.train()
+    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
+    (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
+
+
+def _pause(trainer: ContinualTrainer, seconds: float, step: int) -> None:
+    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do."""
+
+    def resume() -> None:
+        time.sleep(seconds)
+        trainer.training_state = "training"
+
+    if step == 1:
+        trainer.training_state = "paused"
+        threading.Thread(target=resume, daemon=True).start()
+
+
+def _die_after_second_iteration(step: int) -> None:
+    if step == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def two_process_command(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> List[str]:
+    """launch_two_processes in a fresh interpreter (as ns-train runs), with tiny_config's options and `options`:
+    datamanager options, and recorded_train_loop's (slow_rank, slow_seconds, dying_rank)."""
+    script = "import json, sys; sys.path.insert(0, sys.argv[1]); import helpers; helpers.launch_from_json(sys.argv[2])"
+    arguments = json.dumps({"output_dir": str(output_dir), "timeout_seconds": timeout_seconds, **options})
+    return [sys.executable, "-c", script, str(Path(__file__).parent), arguments]
+
+
+def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
+    """two_process_command, run to its end."""
+    command = two_process_command(output_dir, timeout_seconds, **options)
+    return subprocess.run(command, check=False, env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600)
+
+
+def launch_from_json(arguments: str) -> None:
+    """two_process_run's side in the fresh interpreter."""
+    options = json.loads(arguments)
+    recorded = ("slow_rank", "slow_seconds", "dying_rank", "pausing_seconds")
+    recording = {name: options.pop(name) for name in recorded if name in options}
+    timeout_seconds = options.pop("timeout_seconds")
+    config = tiny_config(Path(options.pop("output_dir")), demo_parser(), **options.pop("tiny", {}))
+    config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **options)
+    config.timestamp = "two-processes"
+    launch_two_processes(config, timeout_seconds, **recording)
+
+
+def two_process_run_dir(output_dir: Path) -> Path:
+    return output_dir / "unnamed" / "continual-ngp" / "two-processes"
+
+
+def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
+    """One of two gloo processes: what continual_nerf.core.distributed's helpers give this rank, into rank<r>.pt."""
+    import torch.distributed as dist
+
+    from continual_nerf.core import distributed
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", world_size=2, rank=rank)
+    torch.manual_seed(rank)  # different weights on each rank
+    module = torch.nn.Linear(3, 2)
+    distributed.copy_from_main(module, "cpu")
+    results = {
+        "decided": distributed.decided_by_main(10 + rank, "cpu"),
+        "averaged": distributed.averaged_over_ranks({"fisher": torch.full((2,), 2.0 * rank)})["fisher"],
+        "weights": module.state_dict(),
+    }
+    torch.save(results, output_dir / f"rank{rank}.pt")
+    dist.destroy_process_group()
 
 
 def flip_tensor_bytes(checkpoint: bytes) -> bytes:

@@ -8,6 +8,7 @@ import random
 import socket
 import threading
 import time
+from datetime import timedelta
 from typing import List
 from unittest import mock
 
@@ -21,6 +22,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from torch import nn
 
 from continual_nerf import nerfstudio_compat as compat
@@ -156,6 +158,43 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         compat.rerender(viewer)  # no browser connected: nothing to render, and no error
     finally:
         trainer.shutdown()
+
+
+def test_vanilla_pipeline_wraps_with_cuda_device_ids_only_for_several_processes():
+    source = inspect.getsource(VanillaPipeline.__init__)
+    assert "if world_size > 1:" in source and "device_ids=[local_rank]" in source
+    assert compat.world_size_for_vanilla_pipeline("cpu", 2) == 1
+    assert compat.world_size_for_vanilla_pipeline("cuda:1", 2) == 2
+
+
+def test_ns_train_saves_the_config_right_before_launch_and_looks_launch_up_when_called(monkeypatch):
+    from nerfstudio.scripts import train as ns_train
+
+    main = inspect.getsource(ns_train.main)
+    assert main.index("config.save_config()") < main.index("launch(")
+    assert "_distributed_worker," in inspect.getsource(ns_train.launch)  # a global, looked up when launch runs
+    monkeypatch.setattr(ns_train, "launch", ns_train.launch)
+    monkeypatch.setattr(ns_train, "_distributed_worker", ns_train._distributed_worker)
+    monkeypatch.setattr(compat, "_nerfstudio_launch", [])
+    compat.launch_processes_here()
+    assert ns_train.launch is compat.launch_reporting_one_line
+    assert ns_train._distributed_worker is compat.process_worker
+
+
+def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(monkeypatch):
+    from nerfstudio.scripts.train import _distributed_worker
+    from nerfstudio.utils import comms
+
+    assert list(inspect.signature(_distributed_worker).parameters) == list(
+        inspect.signature(compat.process_worker).parameters
+    )
+    monkeypatch.setattr(comms, "LOCAL_PROCESS_GROUP", None)
+    seen = []
+    compat.process_worker(
+        0, lambda *args: seen.append((args, torch.cuda.is_available())), 1, 1, 0, f"tcp://127.0.0.1:{_free_port()}",
+        None, timedelta(seconds=30), "cpu",
+    )  # fmt: skip
+    assert seen == [((0, 1, None, 0), torch.cuda.is_available())]  # training sees the machine as it is
 
 
 def test_trainer_methods_the_continual_trainer_overrides():

@@ -14,6 +14,7 @@ from typing import Callable, Dict, Type
 import torch
 from torch import Tensor, nn
 
+from continual_nerf.core import distributed
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.errors import ContinualConfigError
@@ -146,8 +147,11 @@ class EWCPipeline(ContinualPipeline):
         parameters = self.model.consolidated_parameters()
 
         def task_loss() -> Tensor:
-            # the task's own loss: batches of the open task, without the penalty of earlier tasks
-            _, loss_dict, _ = self.get_train_loss_dict(step=0)
+            # the task's own loss: batches of the open task, without the penalty of earlier tasks; through the
+            # unwrapped model, as autograd.grad leaves DDP's gradient all-reduce waiting
+            _, loss_dict, _ = self.local_train_loss_dict(step=0)
             return torch.stack([value for name, value in loss_dict.items() if name != EWC_LOSS]).sum()
 
-        self.model.ewc.consolidate(estimate_fisher(parameters, task_loss, self.config.fisher_batches), parameters)
+        # every rank estimates from its own batches; their mean is the estimate over all of them
+        fisher = distributed.averaged_over_ranks(estimate_fisher(parameters, task_loss, self.config.fisher_batches))
+        self.model.ewc.consolidate(fisher, parameters)

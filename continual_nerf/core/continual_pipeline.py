@@ -18,14 +18,17 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
+from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
+from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.nerfstudio_compat import world_size_for_vanilla_pipeline
 from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
@@ -101,7 +104,12 @@ class ContinualPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
-        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        super().__init__(
+            config, device, test_mode, world_size_for_vanilla_pipeline(device, world_size), local_rank, grad_scaler
+        )
+        if world_size > 1 and self.world_size == 1:  # CPU processes: DDP without nerfstudio's CUDA device_ids
+            self._model = distributed.data_parallel(self._model)  # type: ignore[assignment]
+            self.world_size = world_size
         options = config.datamanager
         self.task = TaskState()
         self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
@@ -146,9 +154,16 @@ class ContinualPipeline(VanillaPipeline):
         )
 
     def get_train_loss_dict(self, step: int):
+        return self._train_loss_dict(step, self._model)
+
+    def local_train_loss_dict(self, step: int):
+        """A training batch's losses through the unwrapped model: no gradient all-reduce follows its backward."""
+        return self._train_loss_dict(step, self.model)
+
+    def _train_loss_dict(self, step: int, model: torch.nn.Module):
         ray_bundle, batch = self.datamanager.next_train(step)
         self.add_replay_targets(ray_bundle, batch)
-        model_outputs = self._model(ray_bundle)
+        model_outputs = model(ray_bundle)
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         return model_outputs, loss_dict, metrics_dict
@@ -196,19 +211,33 @@ class ContinualPipeline(VanillaPipeline):
         return time.perf_counter() - self._clock_started
 
     def _after_iteration(self, trainer: Trainer, step: int) -> None:
-        """Count the iteration into the budget; once it is spent and the next task is there, end the open task."""
+        """Count the iteration into the budget; once it is spent and the next task is there, end the open task.
+
+        With several processes rank 0 decides and the others follow, so that all switch at the same step.
+        """
         self.budget.count(self._stop_clock())
-        if not self.budget.spent():
+        decision = distributed.decided_by_main(
+            self._decide(trainer) if distributed.is_main() else TaskDecision.CONTINUE, self.device
+        )
+        if decision == TaskDecision.CONTINUE:
             return
-        if not self.datamanager.await_next_task(self.budget.next_task_requested, trainer.train_lock):
-            return  # a capture still running: the released tasks keep training until the next one arrives
-        self.evaluate_seen_tasks(step, trainer.base_dir)
-        if self.is_last_task:
+        if distributed.is_main():
+            self.evaluate_seen_tasks(step, trainer.base_dir)
+        if decision == TaskDecision.LAST_TASK_DONE:
             trainer.stop_training = True
         else:
             self.open_next_task()
-            CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} starts at step {step + 1}")
+            if distributed.is_main():
+                CONSOLE.print(f"[bold]Task {self.task.current + 1}/{self.known_tasks} starts at step {step + 1}")
         trainer.save_checkpoint(step)
+        distributed.barrier()  # the other ranks wait while rank 0 evaluates and checkpoints
+
+    def _decide(self, trainer: Trainer) -> TaskDecision:
+        if not self.budget.spent():
+            return TaskDecision.CONTINUE
+        if not self.datamanager.await_next_task(self.budget.next_task_requested, trainer.train_lock):
+            return TaskDecision.CONTINUE  # a capture still running: the released tasks train until the next arrives
+        return TaskDecision.LAST_TASK_DONE if self.is_last_task else TaskDecision.NEXT_TASK
 
     def before_task_switch(self) -> None:
         """Runs at the end of every task but the last, while its pixels are still readable (e.g. EWC's Fisher)."""
@@ -219,6 +248,7 @@ class ContinualPipeline(VanillaPipeline):
         if self.replay_buffer.enabled:
             self._keep_pixels_of_closing_task()
         if self.replays:
+            distributed.copy_from_main(self.model, self.device)  # every rank's oracle: rank 0's weights, bit for bit
             self.replay_oracle.update(self.model)
         self.task.current += 1
         self.budget.start_task()
@@ -233,6 +263,8 @@ class ContinualPipeline(VanillaPipeline):
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
         self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels())
+        if not distributed.is_main():
+            return  # every rank keeps its own random share; rank 0's is checkpointed
         CONSOLE.print(
             f"Replay buffer: {len(self.replay_buffer)} pixels of {self.task.current + 1} tasks, "
             f"{self.replay_buffer.nbytes / 2**20:.2f} MiB"
@@ -262,6 +294,8 @@ class ContinualPipeline(VanillaPipeline):
         )
 
     def _print_summary(self, step: int) -> None:
+        if not distributed.is_main():
+            return  # rank 0 alone evaluates
         if not self.accuracy.psnr:
             CONSOLE.print("[bold yellow]No task finished: no accuracy matrix to report.")
             return
@@ -276,6 +310,15 @@ class ContinualPipeline(VanillaPipeline):
         result = super().load_state_dict(state_dict, strict)
         self._open_frame_parameters(start=False)  # the loaded task continues with the loaded codes and poses
         return result
+
+    def checkpoint_state_dict(self) -> Dict[str, Any]:
+        """The state dict with the model's keys as one process has them (no DDP `module.`): any number of processes
+        resumes from it, and ns-eval / ns-render read it."""
+        state = self.state_dict()
+        if self.model is self._model:
+            return state
+        wrapped = "_model.module."
+        return {("_model." + key[len(wrapped) :] if key.startswith(wrapped) else key): v for key, v in state.items()}
 
     def get_extra_state(self) -> Dict[str, Any]:
         # the task, its progress and the accuracy matrix so far: a resumed run continues where this one stopped and

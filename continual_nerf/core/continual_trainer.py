@@ -30,15 +30,18 @@ from continual_nerf.checkpoints import (
     save_checkpoint_file,
 )
 from continual_nerf.compilation import warm_up
+from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
-from continual_nerf.nerfstudio_compat import first_step, leave_pause, set_resume_step
+from continual_nerf.nerfstudio_compat import first_step, launch_processes_here, leave_pause, set_resume_step
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
+
+TrainingState = Literal["training", "paused", "completed"]
 
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
@@ -62,6 +65,9 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         super().validate()
         if self.max_num_iterations is not None and self.max_num_iterations < 1:
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
+        if self.start_paused and self.machine.num_devices * self.machine.num_machines > 1:
+            # the other processes would wait for rank 0's first step in a collective that times out
+            raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
 
     def setup(self, **kwargs: Any) -> Any:
         with one_line_exit(self.method_name):
@@ -75,7 +81,15 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
 
     def save_config(self) -> None:
         """Claim the run folder for the run's life, then write nerfstudio's config.yml there, unless the folder holds
-        another run's results (they would be overwritten); temporary files of killed saves are removed."""
+        another run's results (they would be overwritten); temporary files of killed saves are removed.
+
+        `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
+        (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
+        """
+        if self.machine.num_devices * self.machine.num_machines > 1:
+            launch_processes_here()
+        if self.machine.machine_rank > 0:
+            return
         base_dir, source = self.get_base_dir(), self.resume_source()
         with one_line_exit(self.method_name):
             previous = claim_run_folder(base_dir)
@@ -124,8 +138,11 @@ class ContinualTrainer(Trainer):
 
     config: ContinualTrainerConfig
     pipeline: ContinualPipeline
+    _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        self.pause_requested = False
+        """With several processes: the viewer asked for a pause, which starts at the end of the iteration."""
         super().__init__(config, local_rank, world_size)
         self.panel: Optional[ContinualPanel] = None
         """The viewer's continual-learning panel, when the viewer runs."""
@@ -143,6 +160,12 @@ class ContinualTrainer(Trainer):
             TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
             TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
         ]
+        if distributed.is_distributed():  # after the panel's: a pause it starts at a task's end holds every rank
+            self.callbacks.append(
+                TrainingCallback(
+                    [location.AFTER_TRAIN_ITERATION], distributed.hold_while_paused, args=[self, self.pause_now]
+                )
+            )
 
     def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
         self.config.max_num_iterations = self._iterations_to_run()
@@ -154,6 +177,10 @@ class ContinualTrainer(Trainer):
             torch.use_deterministic_algorithms(True, warn_only=True)
         with one_line_exit(self.config.method_name):
             super().setup(test_mode)
+        if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
+            # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
+            self.viewer_state.viser_server.stop()
+            self.viewer_state = None
         if isinstance(self.viewer_state, Viewer):
             self.panel = self._install_panel(self.viewer_state)
         show_stage = self.panel.show_stage if self.panel is not None else lambda stage: None
@@ -163,6 +190,27 @@ class ContinualTrainer(Trainer):
             progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
         )
         show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    @property
+    def training_state(self) -> TrainingState:
+        return self._training_state
+
+    @training_state.setter
+    def training_state(self, state: TrainingState) -> None:
+        # with several processes a pause (the viewer's button, from its own thread) starts at the end of an
+        # iteration, where every process learns of it (hold_while_paused); nerfstudio's loop, seeing it sooner, would
+        # stop process 0 alone while the others wait in the next gradient all-reduce
+        if state == "paused" and distributed.is_distributed():
+            self.pause_requested = True
+        else:
+            self._training_state = state
+
+    def pause_now(self) -> bool:
+        """Whether training pauses (or stays paused) from this iteration's end: what hold_while_paused holds on."""
+        if self.pause_requested:
+            self._training_state = "paused"
+            self.pause_requested = False
+        return self._training_state == "paused" and not self.stop_training
 
     def _install_panel(self, viewer: Viewer) -> ContinualPanel:
         """The continual panel, in the viewer from the moment it answers (before the model compiles)."""
@@ -212,9 +260,12 @@ class ContinualTrainer(Trainer):
     def _answer_interrupt(self, step: int) -> None:
         """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
         resume it and exit with 128 + the signal."""
-        number = INTERRUPTS.received
-        if number is None:
+        # several processes stop at the same step, the one rank 0 received its signal before
+        number = distributed.decided_by_main(INTERRUPTS.received or 0, self.pipeline.device)
+        if not number:
             return
+        if not distributed.is_main():
+            raise SystemExit(EXIT_CODES[number])  # rank 0 saves, writes and says how to resume
         if step > first_step(self):
             self.save_checkpoint(step - 1)
             how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
@@ -240,11 +291,13 @@ class ContinualTrainer(Trainer):
 
     def _train_saying_so_if_it_fails(self) -> None:
         accuracy = self.pipeline.accuracy
+        main = distributed.is_main()  # rank 0 alone writes results
         try:
-            accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, whenever it is killed
+            if main:
+                accuracy.write(self.base_dir)  # the run folder says "not finished" from the start, however it ends
             super().train()
         except Exception:
-            if not accuracy.finished:
+            if main and not accuracy.finished:
                 accuracy.status = "failed"
                 with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
                     accuracy.write(self.base_dir)
@@ -267,7 +320,8 @@ class ContinualTrainer(Trainer):
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
         self._check_budget_reaches(state["step"], path)
-        restore_rng_states(state["rng"])
+        if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
+            restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
         CONSOLE.print(
             f"Resuming from {path} at step {first_step(self)}: task {pipeline.task.current + 1}/"
@@ -316,7 +370,7 @@ class ContinualTrainer(Trainer):
         return {
             "step": step,
             "method": self.config.method_name,
-            "pipeline": self.pipeline.state_dict(),
+            "pipeline": self.pipeline.checkpoint_state_dict(),
             "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),

@@ -266,6 +266,18 @@ class CaptureTasks:
         self.collecting = []
         return True
 
+    def frames_from(self, task: int) -> int:
+        """Frames read so far from task `task` on, the one being captured included."""
+        return sum(len(frames) for frames in self.tasks[task:]) + len(self.collecting)
+
+    def cut_task(self, task: int, frames: int) -> None:
+        """Make task `task` the next `frames` frames from its start, as another process cut it; the rest is being
+        captured."""
+        pending = [frame for frames_of_task in self.tasks[task:] for frame in frames_of_task] + self.collecting
+        del self.tasks[task:]
+        self.tasks.append(pending[:frames])
+        self.collecting = pending[frames:]
+
     def _close_at_marker(self, marker: str) -> None:
         if not self.close_task() and self.collecting:
             warn(f"{marker}: a task needs 2 frames; {self.collecting[0].name} joins the next task")

@@ -22,6 +22,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from continual_nerf.core import distributed
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
@@ -144,6 +145,8 @@ class StreamingDataManager(ContinualDataManager):
 
     def release(self, task: int) -> None:
         """Grow the datasets by the tasks up to `task`, then release it as the batch mode does."""
+        if distributed.is_distributed():
+            self._cut_as_main_did(task)
         while self.num_tasks <= task:
             self._append_task(self.capture.tasks[self.num_tasks])
         self.train_dataset = self.create_train_dataset()
@@ -152,6 +155,15 @@ class StreamingDataManager(ContinualDataManager):
         super().release(task)
         self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
         self._idle_reported = False
+
+    def _cut_as_main_did(self, task: int) -> None:
+        """Rank 0 found `task` complete: read the capture until it is here too, and cut it where rank 0 did (the
+        frames reach every process in the same order, but not at the same time, and "Next task now" cuts early)."""
+        main = distributed.is_main()
+        frames = distributed.decided_by_main(len(self.capture.tasks[task]) if main else 0, self.device)
+        if not main:
+            self.capture.wait_until(lambda: self.capture.frames_from(task) >= frames)
+            self.capture.cut_task(task, frames)
 
     def resume_at(self, task: int) -> None:
         if self.test_mode == "val" and task > 0:
