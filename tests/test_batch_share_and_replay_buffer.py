@@ -85,7 +85,7 @@ def test_a_run_with_the_buffer_holds_closed_tasks_pixels_only_and_resumes_with_t
     for flat, frame, rgb in list(zip(buffer.flat.tolist(), frames.tolist(), buffer.rgb))[:20]:
         local = flat - int(dataset.pixel_offsets[frame])
         width = int(dataset.cameras.width[frame])
-        image = np.asarray(Image.open(dataset.image_filenames[frame]))
+        image = np.array(Image.open(dataset.image_filenames[frame]))  # a writable copy for torch
         assert torch.equal(rgb, torch.from_numpy(image[local // width, local % width, :3])), "the pixel's own colour"
 
     resumed = tiny_config(tmp_path / "resumed", demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
