@@ -65,9 +65,14 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         super().validate()
         if self.max_num_iterations is not None and self.max_num_iterations < 1:
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
-        if self.start_paused and self.machine.num_devices * self.machine.num_machines > 1:
+        if self.start_paused and self.several_processes:
             # the other processes would wait for rank 0's first step in a collective that times out
             raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
+
+    @property
+    def several_processes(self) -> bool:
+        """Whether ns-train starts more than one process (--machine.num-devices x --machine.num-machines)."""
+        return self.machine.num_devices * self.machine.num_machines > 1
 
     def setup(self, **kwargs: Any) -> Any:
         with one_line_exit(self.method_name):
@@ -86,7 +91,7 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
         (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
-        if self.machine.num_devices * self.machine.num_machines > 1:
+        if self.several_processes:
             launch_processes_here()
         if self.machine.machine_rank > 0:
             return
