@@ -24,6 +24,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.fields.nerfacto_field import NerfactoField
+from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
@@ -71,6 +72,18 @@ def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:
 def set_proposal_sampler_state(model: NerfactoModel, state: Dict[str, int]) -> None:
     model.proposal_sampler._step = int(state["proposal_step"])
     model.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
+
+
+def jitter_samples_as_in_training(model: nn.Module) -> None:
+    """Let `model`'s ray samplers place their samples as they do while it trains (stratified, jittered), whatever
+    mode the rest of the model is in.
+
+    Depends on: nerfstudio's samplers (`Sampler` subclasses: the uniform, lin-disp and PDF samplers, the proposal
+    sampler) jittering when their own `training` flag is set, and nothing else in them reading it.
+    """
+    for module in model.modules():
+        if isinstance(module, Sampler):
+            module.train()
 
 
 def hot_modules(model: NerfactoModel) -> List[nn.Module]:

@@ -57,11 +57,34 @@ def test_replayed_targets_are_the_frozen_oracles_colours(trainer):
     pipeline = trainer.pipeline
     pipeline.open_next_task()
     ray_bundle, batch = pipeline.datamanager.next_train(0)
+    torch.manual_seed(0)
     pipeline.add_replay_targets(ray_bundle, batch)
     replay = batch["is_replay"]
     assert replay.any() and (~replay).any()
+    torch.manual_seed(0)  # the oracle samples along its rays as training does: jittered
     expected = pipeline.replay_oracle.render(ray_bundle[replay])
     assert torch.allclose(batch["image"][replay], expected, atol=1e-6)
+
+
+def test_the_oracle_renders_its_targets_as_training_renders_the_student(trainer):
+    pipeline = trainer.pipeline
+    pipeline.open_next_task()  # the oracle is the student as it is now
+    pipeline.train()
+    ray_bundle, _ = pipeline.datamanager.next_train(0)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        trained = pipeline.model(ray_bundle)["rgb"]
+    torch.manual_seed(0)
+    target = pipeline.replay_oracle.render(ray_bundle)
+    assert torch.allclose(target, trained, atol=1e-5)
+    torch.manual_seed(1)
+    assert not torch.equal(pipeline.replay_oracle.render(ray_bundle), target), (
+        "samples jitter from batch to batch, as in training"
+    )
+    pipeline.eval()
+    with torch.no_grad():
+        evaluated = pipeline.model(ray_bundle)["rgb"]
+    assert not torch.equal(evaluated, target), "evaluation's fixed samples render other colours"
 
 
 def test_oracle_is_frozen_during_a_step_and_only_one_copy_exists(trainer):

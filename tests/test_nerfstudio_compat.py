@@ -50,6 +50,24 @@ def test_proposal_sampler_counters_exist_and_round_trip():
     assert compat.proposal_sampler_state(model)["proposal_step"] == 11
 
 
+def test_samplers_jitter_as_in_training_while_the_model_evaluates():
+    model = small_model(ContinualNGPModelConfig(compile=False)).setup(scene_box=SCENE_BOX, num_train_data=1)
+    model.eval()
+    rays = model.collider(random_rays(model, 64))
+
+    def sample_starts() -> torch.Tensor:
+        samples = model.proposal_sampler(rays, density_fns=model.density_fns)[0]
+        return samples.frustums.starts
+
+    with torch.no_grad():
+        fixed = sample_starts()
+        assert torch.equal(sample_starts(), fixed), "evaluation samples at fixed places"
+        compat.jitter_samples_as_in_training(model)
+        assert not model.training and not model.field.training, "only the samplers change mode"
+        jittered = sample_starts()
+        assert not torch.equal(jittered, fixed) and not torch.equal(sample_starts(), jittered)
+
+
 @pytest.mark.parametrize("use_linear", [False, True])
 def test_hot_modules_are_the_modules_every_sample_passes_through(use_linear):
     config = small_model(ContinualNGPModelConfig(compile=False))

@@ -12,6 +12,7 @@ from torch import nn
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.per_frame import TRAINING_FRAME
+from continual_nerf.nerfstudio_compat import jitter_samples_as_in_training
 
 
 class ReplayOracle(nn.Module):
@@ -43,11 +44,16 @@ class ReplayOracle(nn.Module):
             self.model.requires_grad_(False)  # before compiling: compiled code is specialised on it
             warm_up(self.model, self.rays_per_batch, with_gradients=False)
         self.model.load_state_dict(model.state_dict())
-        self.model.eval()
+        self.train()
 
     def train(self, mode: bool = True) -> "ReplayOracle":
-        """The copy stays in eval mode whatever the pipeline does: its samplers must not jitter."""
-        return super().train(False)
+        """The copy is never trained, whatever the pipeline does; but its ray samplers jitter as the student's do while
+        it trains. The student learns the targets in training mode: targets rendered with evaluation's fixed samples
+        would teach it the gap between the two renders, and the gap compounds from one copy to the next."""
+        super().train(False)
+        if self.model is not None:
+            jitter_samples_as_in_training(self.model)
+        return self
 
     @torch.no_grad()
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
