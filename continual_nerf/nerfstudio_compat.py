@@ -25,6 +25,7 @@ from nerfstudio.engine.trainer import Trainer
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
+from nerfstudio.model_components.scene_colliders import SceneCollider
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
@@ -74,15 +75,15 @@ def set_proposal_sampler_state(model: NerfactoModel, state: Dict[str, int]) -> N
     model.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
 
 
-def jitter_samples_as_in_training(model: nn.Module) -> None:
-    """Let `model`'s ray samplers place their samples as they do while it trains (stratified, jittered), whatever
-    mode the rest of the model is in.
+def sample_rays_as_in_training(model: nn.Module) -> None:
+    """Let `model` place its samples along rays as it does while it trains, whatever mode the rest of it is in: the
+    samplers jitter and the collider keeps the near plane (nerfstudio moves it to 0 outside training).
 
-    Depends on: nerfstudio's samplers (`Sampler` subclasses: the uniform, lin-disp and PDF samplers, the proposal
-    sampler) jittering when their own `training` flag is set, and nothing else in them reading it.
+    Depends on: nerfstudio's ray samplers (`Sampler` subclasses) jittering and its colliders (`SceneCollider`
+    subclasses) applying the near plane when their own `training` flag is set, and nothing else in them reading it.
     """
     for module in model.modules():
-        if isinstance(module, Sampler):
+        if isinstance(module, (Sampler, SceneCollider)):
             module.train()
 
 

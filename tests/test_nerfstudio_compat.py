@@ -17,6 +17,7 @@ import pytest
 import torch
 import viser.transforms as vtf
 from helpers import demo_parser, tiny_config, train
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
@@ -50,22 +51,27 @@ def test_proposal_sampler_counters_exist_and_round_trip():
     assert compat.proposal_sampler_state(model)["proposal_step"] == 11
 
 
-def test_samplers_jitter_as_in_training_while_the_model_evaluates():
+def test_rays_are_sampled_as_in_training_while_the_model_evaluates():
     model = small_model(ContinualNGPModelConfig(compile=False)).setup(scene_box=SCENE_BOX, num_train_data=1)
     model.eval()
-    rays = model.collider(random_rays(model, 64))
+    rays = random_rays(model, 64)
+
+    def collided() -> RayBundle:
+        rays.nears = rays.fars = None  # the collider leaves set planes as they are
+        return model.collider(rays)
 
     def sample_starts() -> torch.Tensor:
-        samples = model.proposal_sampler(rays, density_fns=model.density_fns)[0]
-        return samples.frustums.starts
+        return model.proposal_sampler(collided(), density_fns=model.density_fns)[0].frustums.starts
 
     with torch.no_grad():
         fixed = sample_starts()
         assert torch.equal(sample_starts(), fixed), "evaluation samples at fixed places"
-        compat.jitter_samples_as_in_training(model)
-        assert not model.training and not model.field.training, "only the samplers change mode"
+        assert torch.all(collided().nears == 0), "nerfstudio evaluates from the camera's centre on"
+        compat.sample_rays_as_in_training(model)
+        assert not model.training and not model.field.training, "only the samplers and the collider change mode"
         jittered = sample_starts()
         assert not torch.equal(jittered, fixed) and not torch.equal(sample_starts(), jittered)
+        assert torch.all(collided().nears == model.config.near_plane), "the training near plane"
 
 
 @pytest.mark.parametrize("use_linear", [False, True])

@@ -12,7 +12,7 @@ from torch import nn
 from continual_nerf.compilation import warm_up
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.per_frame import TRAINING_FRAME
-from continual_nerf.nerfstudio_compat import jitter_samples_as_in_training
+from continual_nerf.nerfstudio_compat import sample_rays_as_in_training
 
 
 class ReplayOracle(nn.Module):
@@ -47,12 +47,13 @@ class ReplayOracle(nn.Module):
         self.train()
 
     def train(self, mode: bool = True) -> "ReplayOracle":
-        """The copy is never trained, whatever the pipeline does; but its ray samplers jitter as the student's do while
-        it trains. The student learns the targets in training mode: targets rendered with evaluation's fixed samples
-        would teach it the gap between the two renders, and the gap compounds from one copy to the next."""
+        """The copy is never trained, whatever the pipeline does; but it samples along rays as the student does while it
+        trains (jittered samples, the training near plane). The student learns the targets in training mode: targets
+        rendered as evaluation renders would teach it the gap between the two renders (e.g. whatever density lies
+        before the near plane, which training never sees), and the gap compounds from one copy to the next."""
         super().train(False)
         if self.model is not None:
-            jitter_samples_as_in_training(self.model)
+            sample_rays_as_in_training(self.model)
         return self
 
     @torch.no_grad()
