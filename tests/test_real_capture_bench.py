@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from helpers import rotation
 
-from continual_nerf.bench.real_capture import fitted_onto, rms_errors
+from continual_nerf.bench.real_capture import RealCaptureBenchmark, fitted_onto, reports_pose_errors, rms_errors
 from continual_nerf.dataparsers import demo_capture
 
 
@@ -36,3 +36,18 @@ def test_errors_within_the_trajectory_remain():
     length = demo_capture.trajectory_length(true[:, :, 3])
     degrees, percent = rms_errors(noisy, true, length)
     assert 0.3 < degrees < 3.0 and 0.5 < percent < 6.0, "the best fit removes only what the whole trajectory shares"
+
+
+@pytest.mark.parametrize(
+    ("capture", "feature", "reported"),
+    [
+        ("clean", "off", False),
+        ("clean", "pose refinement", True),
+        ("poses off 1 deg, 1 %", "off", True),
+        ("exposure +-30 %", "codes per image", False),
+    ],
+)
+def test_pose_errors_are_reported_for_noisy_poses_and_for_every_refining_run(tmp_path, capture, feature, reported):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
+    demo = bench.demo("room", capture)
+    assert reports_pose_errors(demo, bench.config(demo, feature, tmp_path / "run")) == reported

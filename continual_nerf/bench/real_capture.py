@@ -8,9 +8,9 @@ length (smooth along the capture); on the demo street: the clean capture and its
 colour response (+-20 %). Each is trained with continual-ngp's defaults ("off") and with the feature that answers its
 flaw: appearance codes (per image, or per camera and task) or pose refinement; the clean room also with each feature
 on, to see what a feature costs where it has nothing to fix. The table gives every run's final mean test PSNR beside
-the clean capture's and, for pose errors, the rotation and translation errors of the training poses before and after
-refinement (each trajectory first moved by the rigid motion that fits it best onto the true one: where the whole
-trajectory lies is not observable). Finished runs are read back, not trained again, so an interrupted benchmark
+the clean capture's and, for pose errors and pose refinement, the rotation and translation errors of the training poses
+before and after refinement (each trajectory first moved by the rigid motion that fits it best onto the true one:
+where the whole trajectory lies is not observable). Finished runs are read back, not trained again, so an interrupted benchmark
 resumes; results.md in the output folder holds the tables.
 """
 
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import tyro
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
@@ -105,7 +105,7 @@ class CaptureRun:
     after_own_task: float
     """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal)."""
     poses: Optional[PoseErrors]
-    """Training pose errors, for captures with pose errors."""
+    """Training pose errors, for captures with pose errors and for runs that refine poses."""
 
     @classmethod
     def read(cls, path: Path) -> "CaptureRun":
@@ -133,6 +133,14 @@ def rms_errors(poses: np.ndarray, true: np.ndarray, length: float) -> Tuple[floa
     """Root mean square rotation (degrees) and position (percent of `length`) errors after the best rigid fit."""
     degrees, distances = pose_errors(fitted_onto(poses, true), true)
     return float(np.sqrt((degrees**2).mean())), float(100 * np.sqrt((distances**2).mean()) / length)
+
+
+def reports_pose_errors(demo: ContinualDemoDataParserConfig, config: ContinualTrainerConfig) -> bool:
+    """Whether a run's table row gives pose errors: its capture has pose errors, or it refines poses (on exact poses,
+    how far refinement moves them)."""
+    noisy = demo.pose_noise_degrees > 0 or demo.pose_noise_translation > 0
+    model = config.pipeline.model
+    return noisy or (isinstance(model, NerfactoModelConfig) and model.camera_optimizer.mode != "off")
 
 
 def training_pose_errors(trainer: ContinualTrainer, demo: ContinualDemoDataParserConfig) -> PoseErrors:
@@ -203,11 +211,10 @@ class RealCaptureBenchmark(DemoBenchmark):
         CONSOLE.print(f"[bold]{scene}, {capture}: training continual-ngp, {feature}")
         trainer = train_like_ns_train(config)
         matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
-        noisy = demo.pose_noise_degrees > 0 or demo.pose_noise_translation > 0
         run = CaptureRun(
             quality=RunSummary.of(matrix, trainer.pipeline.budget.total_seconds),
             after_own_task=float(np.mean([row[-1] for row in matrix.psnr])),
-            poses=training_pose_errors(trainer, demo) if noisy else None,
+            poses=training_pose_errors(trainer, demo) if reports_pose_errors(demo, config) else None,
         )
         write_text_atomically(summary_path, json.dumps(dataclasses.asdict(run), indent=1))
         return run
