@@ -51,3 +51,9 @@ def test_pose_errors_are_reported_for_noisy_poses_and_for_every_refining_run(tmp
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
     demo = bench.demo("room", capture)
     assert reports_pose_errors(demo, bench.config(demo, feature, tmp_path / "run")) == reported
+
+
+def test_every_run_trains_with_the_chosen_seed(tmp_path):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", seed=7)
+    demo = bench.demo("room", "clean")
+    assert bench.config(demo, "off", tmp_path / "run").machine.seed == 7

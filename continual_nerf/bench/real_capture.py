@@ -175,6 +175,8 @@ class RealCaptureBenchmark(DemoBenchmark):
     trained, as every table's reference."""
     small_model: bool = False
     """A hash grid small enough to train in minutes on a CPU: a quick look, not the measurement."""
+    seed: int = 42
+    """nerfstudio's --machine.seed of every run (42, nerfstudio's default): another seed, another --output-dir."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
@@ -233,6 +235,7 @@ class RealCaptureBenchmark(DemoBenchmark):
             train_num_rays_per_batch=self.rays_per_batch,
         )
         config.save_only_latest_checkpoint = True
+        config.machine.seed = self.seed
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **FEATURES[feature])
         return config
 
