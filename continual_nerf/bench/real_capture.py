@@ -10,8 +10,8 @@ flaw: appearance codes (per image, or per camera and task) or pose refinement; t
 on, to see what a feature costs where it has nothing to fix. The table gives every run's final mean test PSNR beside
 the clean capture's and, for pose errors and pose refinement, the rotation and translation errors of the training poses
 before and after refinement (each trajectory first moved by the rigid motion that fits it best onto the true one:
-where the whole trajectory lies is not observable). Finished runs are read back, not trained again, so an interrupted benchmark
-resumes; results.md in the output folder holds the tables.
+where the whole trajectory lies is not observable). Finished runs are read back, not trained again, so an interrupted
+benchmark resumes; results.md in the output folder holds the tables.
 """
 
 from __future__ import annotations
