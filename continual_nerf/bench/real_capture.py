@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import tyro
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
@@ -35,6 +35,7 @@ from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
 from continual_nerf.bench.quality import RunSummary, Setting
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.per_frame import refined_poses
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.demo_capture import pose_errors, trajectory_length
@@ -140,7 +141,7 @@ def reports_pose_errors(demo: ContinualDemoDataParserConfig, config: ContinualTr
     how far refinement moves them)."""
     noisy = demo.pose_noise_degrees > 0 or demo.pose_noise_translation > 0
     model = config.pipeline.model
-    return noisy or (isinstance(model, NerfactoModelConfig) and model.camera_optimizer.mode != "off")
+    return noisy or (isinstance(model, ContinualNGPModelConfig) and model.refines_poses)
 
 
 def training_pose_errors(trainer: ContinualTrainer, demo: ContinualDemoDataParserConfig) -> PoseErrors:

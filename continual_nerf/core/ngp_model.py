@@ -86,9 +86,14 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
             )
 
     @property
+    def refines_poses(self) -> bool:
+        """Whether the model learns pose corrections (--pipeline.model.camera-optimizer.mode)."""
+        return self.camera_optimizer.mode != "off"
+
+    @property
     def learns_per_frame(self) -> bool:
         """Whether the model learns parameters per training frame (appearance codes, pose corrections)."""
-        return self.use_appearance_embedding or self.camera_optimizer.mode != "off"
+        return self.use_appearance_embedding or self.refines_poses
 
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
         """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""
@@ -115,8 +120,8 @@ class ContinualNGPModel(NerfactoModel):
             super().populate_modules()
         if self.config.compile:
             compile_model(self)
-        refines_poses = self.config.camera_optimizer.mode != "off"  # pose gradients flow through the positions
-        if self.config.detach_sample_positions and not self.config.predict_normals and not refines_poses:
+        # pose gradients flow through the sample positions
+        if self.config.detach_sample_positions and not self.config.predict_normals and not self.config.refines_poses:
             stop_input_gradients(
                 self.field.mlp_base
             )  # outside the compiled forward, so its graph has no input gradient
