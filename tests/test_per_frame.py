@@ -28,6 +28,7 @@ from continual_nerf.core.per_frame import (
     OpenTaskRows,
     code_of_frame,
     refine_rays,
+    start_from_previous_task,
 )
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_split import nearest_train_frames, split_into_tasks
@@ -39,12 +40,16 @@ from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerC
 SCENE_BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
 CODES = "_model.field.embedding_appearance.embedding.weight"
 POSES = "_model.camera_optimizer.pose_adjustment"
+TRANSFORMS = "_model.color_transforms.transforms"
 
 
-def model_with_codes_and_poses(tasks, cameras) -> ContinualNGPModel:
+def model_with_codes_and_poses(tasks, cameras, **options) -> ContinualNGPModel:
     config = small_model(
         ContinualNGPModelConfig(
-            compile=False, use_appearance_embedding=True, camera_optimizer=CameraOptimizerConfig(mode="SO3xR3")
+            compile=False,
+            use_appearance_embedding=True,
+            camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
+            **options,
         )
     )
     metadata = {FRAME_TASK: torch.tensor(tasks), FRAME_CAMERA: torch.tensor(cameras)}
@@ -57,6 +62,36 @@ def test_a_code_covers_one_image_or_one_cameras_images_of_one_task():
     tasks, cameras = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1]), torch.tensor([0, 1, 0, 1, 0, 1, 0, 1])
     assert code_of_frame(tasks, cameras, "image").tolist() == list(range(8))
     assert code_of_frame(tasks, cameras, "camera-task").tolist() == [0, 1, 0, 1, 4, 5, 4, 5]
+
+
+def test_a_task_starts_from_the_last_row_each_camera_had_in_the_task_before():
+    tasks, cameras = torch.tensor([0, 0, 0, 0, 1, 1, 1]), torch.tensor([0, 1, 0, 1, 0, 1, 2])
+    table = torch.arange(7.0)[:, None].repeat(1, 2)
+    start_from_previous_task(table, code_of_frame(tasks, cameras, "image"), 1, tasks, cameras)
+    # camera 0's last frame of task 0 is frame 2, camera 1's frame 3; camera 2 is new and keeps its row
+    assert table[:, 0].tolist() == [0, 1, 2, 3, 2, 3, 6]
+
+
+def test_a_colour_transform_scales_what_its_frame_records_and_the_oracle_applies_each_rays_own():
+    model = model_with_codes_and_poses(tasks=[0, 0, 1], cameras=[0, 0, 0], use_color_transform=True)
+    rays = random_rays(model, 64)
+    with torch.no_grad():
+        identity = model.color_transforms.transforms[0].clone()
+        model.color_transforms.transforms[2, :, :3] *= torch.tensor([0.5, 1.0, 0.25])
+        model.color_transforms.transforms[2, :, 3] = 0.1
+        model.field.embedding_appearance.embedding.weight.zero_()  # one code: the transforms alone tell frames apart
+    assert torch.equal(identity, torch.eye(3, 4)), "a transform starts as the identity"
+    oracle = ReplayOracle()
+    oracle.update(model)
+
+    def render(frames: torch.Tensor) -> torch.Tensor:
+        return oracle.render(dataclasses.replace(rays, camera_indices=frames[:, None], metadata={}))
+
+    frame_0, frame_2 = render(torch.zeros(64, dtype=torch.long)), render(torch.full((64,), 2))
+    expected = (frame_0 * torch.tensor([0.5, 1.0, 0.25]) + 0.1).clamp(0.0, 1.0)
+    torch.testing.assert_close(frame_2, expected)
+    mixed = torch.arange(64) % 2 * 2
+    torch.testing.assert_close(render(mixed), torch.where(mixed[:, None] == 0, frame_0, frame_2))
 
 
 def test_closed_rows_stay_bit_identical_under_adam_momentum():
@@ -150,26 +185,29 @@ def test_frames_with_the_same_intrinsics_are_one_camera_unless_the_parser_says()
     assert camera_ids(outputs).tolist() == [5, 5, 7]
 
 
-def test_test_frames_render_with_their_nearest_training_frames_code():
+def test_test_frames_render_with_their_nearest_training_frames_code_and_colour_transform():
     datamanager = ContinualDataManagerConfig(dataparser=demo_parser(num_frames=16), num_tasks=2).setup(device="cpu")
     eval_cameras = datamanager.eval_dataset.cameras
     nearest = eval_cameras.metadata[TRAINING_FRAME].view(-1)  # type: ignore[index]
     train_frames = datamanager.task_split.all_train_frames()
     assert train_frames[nearest].tolist() == [1, 9], "test frames 0 and 8 open their tasks: frames 1 and 9"
     dataset = datamanager.train_dataset
-    model = model_with_codes_and_poses(dataset.metadata[FRAME_TASK].tolist(), dataset.metadata[FRAME_CAMERA].tolist())
+    model = model_with_codes_and_poses(
+        dataset.metadata[FRAME_TASK].tolist(), dataset.metadata[FRAME_CAMERA].tolist(), use_color_transform=True
+    )
     model.eval()
 
     def rendered() -> torch.Tensor:
         return model.get_outputs_for_camera(eval_cameras[1:2])["rgb"]
 
-    before = rendered()
-    with torch.no_grad():
-        model.field.embedding_appearance.embedding.weight[int(nearest[0])] += 1.0  # another test frame's code
-    torch.testing.assert_close(rendered(), before)
-    with torch.no_grad():
-        model.field.embedding_appearance.embedding.weight[int(nearest[1])] += 1.0
-    assert (rendered() - before).abs().max() > 1e-3
+    for table in (model.field.embedding_appearance.embedding.weight, model.color_transforms.transforms):
+        before = rendered()
+        with torch.no_grad():
+            table[int(nearest[0])] += 0.2  # another test frame's code or transform
+        torch.testing.assert_close(rendered(), before)
+        with torch.no_grad():
+            table[int(nearest[1])] += 0.2
+        assert (rendered() - before).abs().max() > 1e-3
     # ns-eval and the viewer's eval images take their cameras from these loaders: the metadata comes along
     loaded = [camera.metadata[TRAINING_FRAME].item() for camera, _ in datamanager.fixed_indices_eval_dataloader]
     assert loaded == nearest.tolist()
@@ -190,6 +228,7 @@ def with_codes_and_poses(config, groups: str = "image"):
     config.pipeline.model = dataclasses.replace(
         config.pipeline.model,
         use_appearance_embedding=True,
+        use_color_transform=True,
         appearance_codes=groups,
         camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
     )
@@ -198,7 +237,7 @@ def with_codes_and_poses(config, groups: str = "image"):
 
 def per_frame_state(checkpoint: Path) -> Dict[str, torch.Tensor]:
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
-    return {key: state[key] for key in (CODES, POSES)}
+    return {key: state[key] for key in (CODES, TRANSFORMS, POSES)}
 
 
 @pytest.mark.slow
@@ -211,9 +250,10 @@ def test_a_closed_tasks_codes_and_pose_corrections_never_change_again(run_dir, g
     checkpoints = sorted(config.get_checkpoint_dir().glob("step-*.ckpt"))
     after_task = [per_frame_state(path) for path in checkpoints]
     assert len(after_task) == 3
-    for key in (CODES, POSES):
+    for key in (CODES, TRANSFORMS, POSES):
         task_1 = after_task[0][key][tasks == 0]
-        assert task_1.abs().sum() > 0, "task 1 learned its codes and corrections while it was open"
+        untouched = torch.eye(3, 4) if key == TRANSFORMS else torch.zeros(())
+        assert (task_1 - untouched).abs().sum() > 0, "task 1 learned its codes, transforms and corrections while open"
         for later in after_task[1:]:
             assert torch.equal(later[key][tasks == 0], task_1), f"{key}: task 1's rows moved after it closed"
         assert torch.equal(after_task[2][key][tasks == 1], after_task[1][key][tasks == 1])
@@ -240,7 +280,7 @@ def test_a_resumed_run_keeps_the_codes_and_corrections_and_ends_as_the_uninterru
     tasks = trainer.pipeline.datamanager.train_dataset.task_of_frame
     saved, final = per_frame_state(end_of_task_1), per_frame_state(next(resumed.get_checkpoint_dir().glob("*.ckpt")))
     uninterrupted = per_frame_state(whole.get_checkpoint_dir() / "step-000000007.ckpt")
-    for key in (CODES, POSES):
+    for key in (CODES, TRANSFORMS, POSES):
         assert torch.equal(final[key][tasks == 0], saved[key][tasks == 0]), "task 1's rows came back unchanged"
         assert torch.equal(final[key], uninterrupted[key]), "task 2 continued from the saved rows"
 

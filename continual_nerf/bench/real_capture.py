@@ -56,6 +56,8 @@ FEATURES: Dict[str, Dict[str, Any]] = {
     "off": {},
     "codes per image": {"use_appearance_embedding": True, "appearance_codes": "image"},
     "codes per camera and task": {"use_appearance_embedding": True, "appearance_codes": "camera-task"},
+    "colour transform per image": {"use_color_transform": True, "appearance_codes": "image"},
+    "colour transform per camera and task": {"use_color_transform": True, "appearance_codes": "camera-task"},
     "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
 }
 """continual-ngp's model options of each feature."""
@@ -64,10 +66,13 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
     "room": [
         ("clean", "off"),
         ("clean", "codes per image"),
+        ("clean", "colour transform per image"),
         ("clean", "pose refinement"),
         ("exposure +-30 %", "off"),
         ("exposure +-30 %", "codes per image"),
         ("exposure +-30 %", "codes per camera and task"),
+        ("exposure +-30 %", "colour transform per image"),
+        ("exposure +-30 %", "colour transform per camera and task"),
         ("poses off 1 deg, 1 %", "off"),
         ("poses off 1 deg, 1 %", "pose refinement"),
     ],
@@ -76,6 +81,8 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("camera responses +-20 %", "off"),
         ("camera responses +-20 %", "codes per image"),
         ("camera responses +-20 %", "codes per camera and task"),
+        ("camera responses +-20 %", "colour transform per image"),
+        ("camera responses +-20 %", "colour transform per camera and task"),
     ],
 }
 """(capture, feature) pairs trained on each scene."""

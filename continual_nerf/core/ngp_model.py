@@ -11,6 +11,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
 from continual_nerf.core.distillation_loss import distillation_loss
@@ -20,6 +21,7 @@ from continual_nerf.core.per_frame import (
     TRAINING_FRAME,
     AppearanceGroups,
     FrameCodes,
+    FrameColorTransforms,
     OpenTaskRows,
     code_of_frame,
     refine_rays,
@@ -60,8 +62,12 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     use_appearance_embedding: bool = False
     """Appearance codes (exposure, white balance, camera response): one per --appearance-codes group, learned while its
     task is open, frozen when it closes; off: the paper."""
+    use_color_transform: bool = False
+    """An affine colour transform of the rendered colour (exposure, white balance, camera gain) per --appearance-codes
+    group, learned while its task is open, frozen when it closes; the field keeps one colour for all; off: the paper."""
     appearance_codes: AppearanceGroups = "image"
-    """What one appearance code covers: one training image, or every image one camera took in one task."""
+    """What one appearance code or colour transform covers: one training image, or every image one camera took in
+    one task."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Pose refinement (SO3xR3 or SE3): the open task's frames get learnable pose corrections, frozen when it closes;
     off: the paper, which trains on ground-truth poses."""
@@ -92,8 +98,9 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
 
     @property
     def learns_per_frame(self) -> bool:
-        """Whether the model learns parameters per training frame (appearance codes, pose corrections)."""
-        return self.use_appearance_embedding or self.refines_poses
+        """Whether the model learns parameters per training frame (appearance codes, colour transforms, pose
+        corrections)."""
+        return self.use_appearance_embedding or self.use_color_transform or self.refines_poses
 
     def replay_oracle_config(self) -> ContinualNGPModelConfig:
         """The config the replay oracle's frozen copy is built with: the same weights, fewer samples per ray."""
@@ -126,9 +133,10 @@ class ContinualNGPModel(NerfactoModel):
                 self.field.mlp_base
             )  # outside the compiled forward, so its graph has no input gradient
         self.task_of_frame, self.camera_of_frame = self._frame_tasks_and_cameras()
+        codes = code_of_frame(self.task_of_frame, self.camera_of_frame, self.config.appearance_codes)
         if self.config.use_appearance_embedding:
-            codes = code_of_frame(self.task_of_frame, self.camera_of_frame, self.config.appearance_codes)
             set_appearance_codes(self.field, FrameCodes(codes, self.config.appearance_embed_dim))
+        self.color_transforms = FrameColorTransforms(codes) if self.config.use_color_transform else None
         self.open_task_rows: Optional[OpenTaskRows] = None
         """Keeps closed tasks' codes and pose corrections as they were; None when the model learns neither."""
         if self.config.learns_per_frame:
@@ -145,6 +153,7 @@ class ContinualNGPModel(NerfactoModel):
         codes = appearance_codes(self.field)
         return [
             *([codes.embedding.weight] if isinstance(codes, FrameCodes) else []),
+            *([self.color_transforms.transforms] if self.color_transforms is not None else []),
             *(self.camera_optimizer.parameters()),
         ]
 
@@ -154,6 +163,8 @@ class ContinualNGPModel(NerfactoModel):
         codes = appearance_codes(self.field)
         if start and isinstance(codes, FrameCodes):
             codes.start_task(task, self.task_of_frame, self.camera_of_frame)
+        if start and self.color_transforms is not None:
+            self.color_transforms.start_task(task, self.task_of_frame, self.camera_of_frame)
         if self.open_task_rows is not None:
             self.open_task_rows.open(task)
 
@@ -172,16 +183,29 @@ class ContinualNGPModel(NerfactoModel):
         assert self.open_task_rows is not None
         self.open_task_rows.restore()
 
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        param_groups = super().get_param_groups()
+        if self.color_transforms is not None:
+            param_groups["fields"] += list(self.color_transforms.parameters())
+        return param_groups
+
     def get_outputs(self, ray_bundle: RayBundle):
         frames = ray_bundle.metadata.get(TRAINING_FRAME)
         if self.training or frames is None:
-            return super().get_outputs(ray_bundle)
-        # a training frame's rays outside training (replay, test frames): rendered as training renders that frame,
-        # with its appearance code and refined pose, which nerfacto applies only while training
-        ray_bundle.camera_indices = frames.long()
-        refine_rays(self.camera_optimizer, ray_bundle)
-        with codes_looked_up_per_ray(self.field):
-            return super().get_outputs(ray_bundle)
+            outputs = super().get_outputs(ray_bundle)
+        else:
+            # a training frame's rays outside training (replay, test frames): rendered as training renders that frame,
+            # with its appearance code and refined pose, which nerfacto applies only while training
+            ray_bundle.camera_indices = frames.long()
+            refine_rays(self.camera_optimizer, ray_bundle)
+            with codes_looked_up_per_ray(self.field):
+                outputs = super().get_outputs(ray_bundle)
+        if self.color_transforms is not None and (self.training or frames is not None):
+            assert ray_bundle.camera_indices is not None, "rays of a training frame carry its index"
+            recorded = self.color_transforms(outputs["rgb"], ray_bundle.camera_indices.view(-1))
+            # nerfstudio clamps colours outside training only
+            outputs["rgb"] = recorded if self.training else recorded.clamp(0.0, 1.0)
+        return outputs
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)

@@ -39,6 +39,17 @@ def code_of_frame(tasks: Tensor, cameras: Tensor, groups: AppearanceGroups) -> T
     return first[group]
 
 
+@torch.no_grad()
+def start_from_previous_task(table: Tensor, code_of_frame: Tensor, task: int, tasks: Tensor, cameras: Tensor) -> None:
+    """Start `table`'s rows of `task` at the row each camera's last frame had in the task before: the best guess of an
+    exposure that drifts."""
+    for camera in cameras[tasks == task].unique():
+        before = torch.nonzero((tasks == task - 1) & (cameras == camera)).view(-1)
+        if len(before):
+            rows = code_of_frame[(tasks == task) & (cameras == camera)]
+            table[rows] = table[code_of_frame[before[-1]]].clone()
+
+
 class FrameCodes(Embedding):
     """nerfacto's appearance embedding looked up per training frame through `code_of_frame`; codes start at zero."""
 
@@ -52,15 +63,35 @@ class FrameCodes(Embedding):
     def forward(self, in_tensor: Tensor) -> Tensor:
         return super().forward(self.code_of_frame[in_tensor])
 
-    @torch.no_grad()
     def start_task(self, task: int, tasks: Tensor, cameras: Tensor) -> None:
-        """Start the codes of `task` at the code each camera's last frame had in the task before: the best guess of
-        an exposure that drifts."""
-        for camera in cameras[tasks == task].unique():
-            before = torch.nonzero((tasks == task - 1) & (cameras == camera)).view(-1)
-            if len(before):
-                rows = self.code_of_frame[(tasks == task) & (cameras == camera)]
-                self.embedding.weight[rows] = self.embedding.weight[self.code_of_frame[before[-1]]].clone()
+        """Start the codes of `task` at those of the task before (`start_from_previous_task`)."""
+        start_from_previous_task(self.embedding.weight, self.code_of_frame, task, tasks, cameras)
+
+
+class FrameColorTransforms(nn.Module):
+    """An affine colour transform of the rendered colour per training frame, looked up through `code_of_frame`.
+
+    Exposure, white balance and a camera's gain scale each channel of the recorded value, which a 3 x 3 matrix and an
+    offset express exactly (a gamma curve commutes with the scaling); the field keeps one colour per point for every
+    frame, so the frozen transforms of closed tasks cannot drift as the shared colour network learns later tasks.
+    """
+
+    code_of_frame: Tensor
+
+    def __init__(self, code_of_frame: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("code_of_frame", code_of_frame)
+        self.transforms = nn.Parameter(torch.eye(3, 4).repeat(len(code_of_frame), 1, 1))
+        """(frames, 3, 4) matrix and offset of every row; rows start as the identity."""
+
+    def forward(self, rgb: Tensor, frames: Tensor) -> Tensor:
+        """`rgb` (N, 3) as training frames `frames` (N,) record it."""
+        transforms = self.transforms[self.code_of_frame[frames]]
+        return (transforms[:, :, :3] @ rgb[:, :, None])[:, :, 0] + transforms[:, :, 3]
+
+    def start_task(self, task: int, tasks: Tensor, cameras: Tensor) -> None:
+        """Start the transforms of `task` at those of the task before (`start_from_previous_task`)."""
+        start_from_previous_task(self.transforms, self.code_of_frame, task, tasks, cameras)
 
 
 class OpenTaskRows:
