@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from helpers import rotation
 
-from continual_nerf.bench.real_capture import RealCaptureBenchmark, fitted_onto, reports_pose_errors, rms_errors
+from continual_nerf.bench.real_capture import (
+    FEATURES,
+    RealCaptureBenchmark,
+    fitted_onto,
+    reports_pose_errors,
+    rms_errors,
+)
 from continual_nerf.dataparsers import demo_capture
 
 
@@ -57,3 +63,12 @@ def test_every_run_trains_with_the_chosen_seed(tmp_path):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", seed=7)
     demo = bench.demo("room", "clean")
     assert bench.config(demo, "off", tmp_path / "run").machine.seed == 7
+
+
+@pytest.mark.parametrize("feature", list(FEATURES))
+def test_every_feature_sets_model_options_the_run_validates(tmp_path, feature):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
+    config = bench.config(bench.demo("room", "clean"), feature, tmp_path / "run")
+    config.pipeline.validate()
+    model = config.pipeline.model
+    assert all(getattr(model, option) == value for option, value in FEATURES[feature].items())

@@ -58,6 +58,11 @@ FEATURES: Dict[str, Dict[str, Any]] = {
     "codes per camera and task": {"use_appearance_embedding": True, "appearance_codes": "camera-task"},
     "colour transform per image": {"use_color_transform": True, "appearance_codes": "image"},
     "colour transform per camera and task": {"use_color_transform": True, "appearance_codes": "camera-task"},
+    "codes and colour transform per image": {
+        "use_appearance_embedding": True,
+        "use_color_transform": True,
+        "appearance_codes": "image",
+    },
     "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
 }
 """continual-ngp's model options of each feature."""
@@ -73,6 +78,7 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("exposure +-30 %", "codes per camera and task"),
         ("exposure +-30 %", "colour transform per image"),
         ("exposure +-30 %", "colour transform per camera and task"),
+        ("exposure +-30 %", "codes and colour transform per image"),
         ("poses off 1 deg, 1 %", "off"),
         ("poses off 1 deg, 1 %", "pose refinement"),
     ],
@@ -83,6 +89,7 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("camera responses +-20 %", "codes per camera and task"),
         ("camera responses +-20 %", "colour transform per image"),
         ("camera responses +-20 %", "colour transform per camera and task"),
+        ("camera responses +-20 %", "codes and colour transform per image"),
     ],
 }
 """(capture, feature) pairs trained on each scene."""
