@@ -138,7 +138,7 @@ class ContinualNGPModel(NerfactoModel):
             set_appearance_codes(self.field, FrameCodes(codes, self.config.appearance_embed_dim))
         self.color_transforms = FrameColorTransforms(codes) if self.config.use_color_transform else None
         self.open_task_rows: Optional[OpenTaskRows] = None
-        """Keeps closed tasks' codes and pose corrections as they were; None when the model learns neither."""
+        """Keeps closed tasks' codes, colour transforms and pose corrections as they were; None without any."""
         if self.config.learns_per_frame:
             self.open_task_rows = OpenTaskRows(self._per_frame_parameters(), self.task_of_frame)
 
@@ -158,8 +158,8 @@ class ContinualNGPModel(NerfactoModel):
         ]
 
     def open_task(self, task: int, start: bool) -> None:
-        """From now on only `task`'s codes and pose corrections change; `start`: the task opens now (rather than a
-        resumed run continuing it), and its codes start from the previous task's."""
+        """From now on only `task`'s codes, colour transforms and pose corrections change; `start`: the task opens now
+        (rather than a resumed run continuing it), and its codes and transforms start from the previous task's."""
         codes = appearance_codes(self.field)
         if start and isinstance(codes, FrameCodes):
             codes.start_task(task, self.task_of_frame, self.camera_of_frame)
@@ -201,11 +201,15 @@ class ContinualNGPModel(NerfactoModel):
             with codes_looked_up_per_ray(self.field):
                 outputs = super().get_outputs(ray_bundle)
         if self.color_transforms is not None and (self.training or frames is not None):
-            assert ray_bundle.camera_indices is not None, "rays of a training frame carry its index"
-            recorded = self.color_transforms(outputs["rgb"], ray_bundle.camera_indices.view(-1))
-            # nerfstudio clamps colours outside training only
-            outputs["rgb"] = recorded if self.training else recorded.clamp(0.0, 1.0)
+            outputs["rgb"] = self._as_recorded(outputs["rgb"], ray_bundle)
         return outputs
+
+    def _as_recorded(self, rgb: torch.Tensor, ray_bundle: RayBundle) -> torch.Tensor:
+        """`rgb` through the colour transform of each ray's training frame."""
+        assert self.color_transforms is not None
+        assert ray_bundle.camera_indices is not None, "rays of a training frame carry its index"
+        recorded = self.color_transforms(rgb, ray_bundle.camera_indices.view(-1))
+        return recorded if self.training else recorded.clamp(0.0, 1.0)  # nerfstudio clamps outside training only
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
