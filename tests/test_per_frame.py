@@ -213,9 +213,10 @@ def test_test_frames_render_with_their_nearest_training_frames_code_and_colour_t
     assert loaded == nearest.tolist()
 
 
-def test_codes_and_poses_need_every_frame_from_the_start():
+@pytest.mark.parametrize("option", ["use_appearance_embedding", "use_color_transform"])
+def test_codes_transforms_and_poses_need_every_frame_from_the_start(option):
     pipeline = ContinualPipelineConfig(
-        datamanager=StreamingDataManagerConfig(), model=ContinualNGPModelConfig(use_appearance_embedding=True)
+        datamanager=StreamingDataManagerConfig(), model=ContinualNGPModelConfig(**{option: True})
     )
     with pytest.raises(ContinualConfigError, match="need every frame known when training starts"):
         pipeline.validate()

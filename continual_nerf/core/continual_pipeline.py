@@ -64,8 +64,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
         learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
         if learns_per_frame and not self.datamanager.frames_known_at_start():
             raise ContinualConfigError(
-                "--pipeline.model.use-appearance-embedding and --pipeline.model.camera-optimizer.mode need every "
-                "frame known when training starts; this datamanager receives frames while it trains"
+                "--pipeline.model.use-appearance-embedding, --pipeline.model.use-color-transform and "
+                "--pipeline.model.camera-optimizer.mode need every frame known when training starts; this datamanager "
+                "receives frames while it trains"
             )
 
 
