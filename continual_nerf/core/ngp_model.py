@@ -195,7 +195,8 @@ class ContinualNGPModel(NerfactoModel):
             outputs = super().get_outputs(ray_bundle)
         else:
             # a training frame's rays outside training (replay, test frames): rendered as training renders that frame,
-            # with its appearance code and refined pose, which nerfacto applies only while training
+            # with its appearance code and refined pose, which nerfacto applies only while training (and its colour
+            # transform, applied below in and outside training alike)
             ray_bundle.camera_indices = frames.long()
             refine_rays(self.camera_optimizer, ray_bundle)
             with codes_looked_up_per_ray(self.field):

@@ -73,7 +73,7 @@ class FrameColorTransforms(nn.Module):
 
     Exposure, white balance and a camera's gain scale each channel of the recorded value, which a 3 x 3 matrix and an
     offset express exactly (a gamma curve commutes with the scaling); the field keeps one colour per point for every
-    frame, so the frozen transforms of closed tasks cannot drift as the shared colour network learns later tasks.
+    frame. A camera response that differs by a gamma is beyond it (the codes, which the colour MLP reads, can learn it).
     """
 
     code_of_frame: Tensor
