@@ -1,6 +1,7 @@
 """How close each recipe comes to the joint upper bound, on both built-in scenes.
 
     python -m continual_nerf.bench.quality [--scenes room street] [--settings 5x240 10x120] [--output-dir ...]
+        [--variants "NAME=METHOD OPTIONS" ...]
 
 For every scene (the demo room and the demo street) and every setting (tasks x iterations per task, or tasks x
 seconds per task with an `s` suffix: `5x20s`), trains continual-ngp with its defaults, continual-ngp with the
@@ -8,17 +9,23 @@ paper's recipe, continual-ngp with experience replay at 1 % and 5 % of the pixel
 each through nerfstudio's Trainer, and prints per run: final mean test PSNR, per-task spread of the final row,
 the largest drop of a task from its best, mean SSIM and training seconds. Finished runs are read back, not
 trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
+`--variants` adds recipes of your own: a registered method with ns-train options, e.g.
+`--variants "table 2^19=continual-ngp --pipeline.model.log2-hashmap-size 19"`.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
+import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Literal, Optional, Tuple
 
 import tyro
+from nerfstudio.configs.method_configs import all_methods
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
@@ -31,6 +38,7 @@ from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, CO
 from continual_nerf.recipes import quiet_config, train_like_ns_train
 
 Variant = Callable[[ContinualTrainerConfig], ContinualTrainerConfig]
+Recipe = Tuple[ContinualTrainerConfig, Optional[Variant]]
 
 
 def _with_buffer(fraction: float) -> Variant:
@@ -41,7 +49,7 @@ def _with_buffer(fraction: float) -> Variant:
     return variant
 
 
-RECIPES: Dict[str, Tuple[ContinualTrainerConfig, Optional[Variant]]] = {
+RECIPES: Dict[str, Recipe] = {
     "continual-ngp": (CONTINUAL_NGP, None),
     "continual-ngp, paper recipe": (CONTINUAL_NGP_PAPER, None),
     "continual-ngp, ER 1 %": (CONTINUAL_NGP, _with_buffer(0.01)),
@@ -50,6 +58,25 @@ RECIPES: Dict[str, Tuple[ContinualTrainerConfig, Optional[Variant]]] = {
     "joint (upper bound)": (CONTINUAL_NGP_JOINT, None),
 }
 """What the benchmark trains, by the name its tables give it: a registered config and a change to it."""
+
+
+def parse_variant(text: str) -> Tuple[str, Recipe]:
+    """`NAME=METHOD OPTIONS` as a named recipe: a registered continual method with ns-train options."""
+    name, equals, command = text.partition("=")
+    words = shlex.split(command)
+    if not equals or not name.strip() or not words:
+        raise SystemExit(
+            f"--variants {text!r}: expected NAME=METHOD [OPTIONS], e.g. 'lr=continual-ngp --pipeline.lr-decay-per-task 0.3'"
+        )
+    method, options = words[0], words[1:]
+    base = all_methods.get(method)
+    if not isinstance(base, ContinualTrainerConfig):
+        raise SystemExit(f"--variants {name}: {method} is not a registered continual method")
+    try:
+        config = tyro.cli(ContinualTrainerConfig, default=copy.deepcopy(base), args=options, console_outputs=False)
+    except SystemExit:
+        raise SystemExit(f"--variants {name}: {shlex.join(options)} are not options of ns-train {method}") from None
+    return name.strip(), (config, None)
 
 
 @dataclass(frozen=True)
@@ -122,37 +149,45 @@ class QualityBenchmark(DemoBenchmark):
     """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
     recipes: Tuple[str, ...] = tuple(RECIPES)
     """Which of the recipes to train (names as the tables print them)."""
+    variants: Tuple[str, ...] = ()
+    """More recipes, each NAME=METHOD OPTIONS: a registered method and ns-train options (the setting's own datamanager
+    options, e.g. --pipeline.datamanager.num-tasks, are the benchmark's)."""
     output_dir: Path = Path("outputs/bench-quality")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
     def main(self) -> None:
         check_names("recipes", self.recipes, RECIPES)
+        recipes = {name: RECIPES[name] for name in self.recipes}
+        for name, recipe in map(parse_variant, self.variants):
+            if name in recipes or name in RECIPES:
+                raise SystemExit(f"--variants {name}: a recipe has that name already")
+            recipes[name] = recipe
         results: Dict[str, Dict[str, Dict[str, dict]]] = {}
         for scene in self.scenes:
             for setting in map(Setting.parse, self.settings):
-                runs = {name: self.run(scene, setting, name) for name in self.recipes}
+                runs = {name: self.run(scene, setting, name, recipe) for name, recipe in recipes.items()}
                 results.setdefault(scene, {})[setting.key] = {n: dataclasses.asdict(r) for n, r in runs.items()}
                 self.print_table(scene, setting, runs)
         write_text_atomically(self.output_dir / "results.json", json.dumps(results, indent=1))
         write_text_atomically(self.output_dir / "results.md", markdown(results))
         CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}")
 
-    def run(self, scene: str, setting: Setting, recipe: str) -> RunSummary:
+    def run(self, scene: str, setting: Setting, name: str, recipe: Recipe) -> RunSummary:
         """The recipe's run at this scene and setting: read back if it finished before, trained otherwise."""
-        folder = self.output_dir / "runs" / scene / setting.key / recipe.replace(" ", "").replace(",", "_")
+        folder = self.output_dir / "runs" / scene / setting.key / folder_name(name)
         summary_path = folder / "summary.json"
         if summary_path.exists():
             return RunSummary(**json.loads(summary_path.read_text()))
         config = self.config(scene, setting, recipe, folder)
-        CONSOLE.print(f"[bold]{scene}, {setting}: training {recipe}")
+        CONSOLE.print(f"[bold]{scene}, {setting}: training {name}")
         trainer = train_like_ns_train(config)
         matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
         summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds)
         write_text_atomically(summary_path, json.dumps(dataclasses.asdict(summary), indent=1))
         return summary
 
-    def config(self, scene: str, setting: Setting, recipe: str, folder: Path) -> ContinualTrainerConfig:
-        base, variant = RECIPES[recipe]
+    def config(self, scene: str, setting: Setting, recipe: Recipe, folder: Path) -> ContinualTrainerConfig:
+        base, variant = recipe
         config = quiet_config(
             base,
             folder,
@@ -173,6 +208,11 @@ class QualityBenchmark(DemoBenchmark):
         for name, run in runs.items():
             table.add_row(*table_row(name, run, runs.get("joint (upper bound)")))
         CONSOLE.print(table)
+
+
+def folder_name(recipe: str) -> str:
+    """The folder of a recipe's runs: its name without spaces or path separators."""
+    return re.sub(r"[^\w.^%()-]", "", recipe.replace(",", "_"))
 
 
 TABLE_COLUMNS = (

@@ -1,0 +1,66 @@
+"""python -m continual_nerf.bench.quality --variants: recipes of a user's own, written as ns-train options."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from continual_nerf.bench.quality import RECIPES, QualityBenchmark, Setting, folder_name, parse_variant
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+
+
+def test_a_variant_is_the_registered_method_with_its_options():
+    name, (config, variant) = parse_variant(
+        "joint, table 2^19=continual-ngp-joint --pipeline.model.log2-hashmap-size 19 --pipeline.lr-decay-per-task 0.3"
+    )
+    assert name == "joint, table 2^19"
+    assert variant is None
+    assert config.method_name == "continual-ngp-joint"
+    assert config.pipeline.datamanager.joint
+    assert config.pipeline.model.log2_hashmap_size == 19
+    assert config.pipeline.lr_decay_per_task == 0.3
+
+
+def test_a_variant_run_keeps_its_options_and_takes_the_setting(tmp_path: Path):
+    _, recipe = parse_variant("big table=continual-ngp --pipeline.model.log2-hashmap-size 19")
+    benchmark = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
+    config = benchmark.config("street", Setting.parse("3x7"), recipe, tmp_path / "out" / "run")
+    assert config.pipeline.model.log2_hashmap_size == 19
+    assert config.pipeline.datamanager.num_tasks == 3
+    assert config.pipeline.datamanager.iterations_per_task == 7
+    demo = config.pipeline.datamanager.dataparser
+    assert isinstance(demo, ContinualDemoDataParserConfig) and demo.scene == "street"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("no method here", "expected NAME=METHOD [OPTIONS]"),
+        ("x=", "expected NAME=METHOD [OPTIONS]"),
+        ("x=nerfacto", "x: nerfacto is not a registered continual method"),
+        ("x=continual-ngp --pipeline.model.no-such-option 3", "x: --pipeline.model.no-such-option 3 are not options"),
+    ],
+)
+def test_a_bad_variant_ends_with_one_line(text: str, message: str):
+    with pytest.raises(SystemExit, match=re.escape(message)) as exit_info:
+        parse_variant(text)
+    assert "\n" not in str(exit_info.value.code)
+
+
+def test_a_variant_may_not_take_a_built_in_name(tmp_path: Path):
+    benchmark = QualityBenchmark(
+        recipes=(), variants=("continual-ngp=continual-ngp",), output_dir=tmp_path / "out", data=tmp_path / "demo"
+    )
+    with pytest.raises(SystemExit, match="continual-ngp: a recipe has that name already"):
+        benchmark.main()
+
+
+def test_run_folders_are_names_without_separators():
+    assert folder_name("table 2^19 / big") == "table2^19big"
+    assert [folder_name(name) for name in RECIPES][:3] == [
+        "continual-ngp",
+        "continual-ngp_paperrecipe",
+        "continual-ngp_ER1%",
+    ]
