@@ -1,4 +1,4 @@
-"""python -m continual_nerf.bench.quality --variants: recipes of a user's own, written as ns-train options."""
+"""The benchmarks' --variants (bench.quality, bench.throughput): configurations of a user's own, as ns-train options."""
 
 from __future__ import annotations
 
@@ -7,16 +7,17 @@ from pathlib import Path
 
 import pytest
 
-from continual_nerf.bench.quality import RECIPES, QualityBenchmark, Setting, folder_name, parse_variant
+from continual_nerf.bench.demo_runs import parse_variant
+from continual_nerf.bench.quality import RECIPES, QualityBenchmark, Setting, folder_name
+from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
 
 def test_a_variant_is_the_registered_method_with_its_options():
-    name, (config, variant) = parse_variant(
+    name, config = parse_variant(
         "joint, table 2^19=continual-ngp-joint --pipeline.model.log2-hashmap-size 19 --pipeline.lr-decay-per-task 0.3"
     )
     assert name == "joint, table 2^19"
-    assert variant is None
     assert config.method_name == "continual-ngp-joint"
     assert config.pipeline.datamanager.joint
     assert config.pipeline.model.log2_hashmap_size == 19
@@ -24,9 +25,9 @@ def test_a_variant_is_the_registered_method_with_its_options():
 
 
 def test_a_variant_run_keeps_its_options_and_takes_the_setting(tmp_path: Path):
-    _, recipe = parse_variant("big table=continual-ngp --pipeline.model.log2-hashmap-size 19")
+    _, variant = parse_variant("big table=continual-ngp --pipeline.model.log2-hashmap-size 19")
     benchmark = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
-    config = benchmark.config("street", Setting.parse("3x7"), recipe, tmp_path / "out" / "run")
+    config = benchmark.config("street", Setting.parse("3x7"), (variant, None), tmp_path / "out" / "run")
     assert config.pipeline.model.log2_hashmap_size == 19
     assert config.pipeline.datamanager.num_tasks == 3
     assert config.pipeline.datamanager.iterations_per_task == 7
@@ -64,3 +65,22 @@ def test_run_folders_are_names_without_separators():
         "continual-ngp_paperrecipe",
         "continual-ngp_ER1%",
     ]
+
+
+def test_throughput_times_the_variants_beside_its_own_configurations(tmp_path: Path):
+    benchmark = ThroughputBenchmark(
+        data=tmp_path / "demo",
+        num_tasks=3,
+        variants=("table 2^18=continual-ngp --pipeline.model.log2-hashmap-size 18",),
+    )
+    configs = benchmark.configs(tmp_path / "out")
+    assert list(configs) == ["continual-ngp", "continual-ngp-paper", "continual-ngp-incre", "nerfacto", "table 2^18"]
+    assert configs["table 2^18"].pipeline.model.log2_hashmap_size == 18
+    assert configs["table 2^18"].pipeline.datamanager.num_tasks == 3
+    assert configs["continual-ngp"].pipeline.model.log2_hashmap_size == 17
+
+
+def test_throughput_refuses_a_variant_named_as_its_own_configuration(tmp_path: Path):
+    benchmark = ThroughputBenchmark(data=tmp_path / "demo", variants=("nerfacto=continual-ngp",))
+    with pytest.raises(SystemExit, match="nerfacto: a configuration has that name already"):
+        benchmark.configs(tmp_path / "out")

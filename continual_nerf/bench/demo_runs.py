@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import copy
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Literal
+from typing import Any, Iterable, Literal, Tuple
 
-from nerfstudio.configs.method_configs import method_configs as nerfstudio_methods
+import tyro
+from nerfstudio.configs.method_configs import all_methods, method_configs as nerfstudio_methods
 from nerfstudio.engine.trainer import TrainerConfig
 
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
@@ -36,6 +38,26 @@ def check_names(option: str, chosen: Iterable[str], known: Iterable[str]) -> Non
     unknown = [name for name in chosen if name not in known]
     if unknown:
         raise SystemExit(f"--{option}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
+
+
+def parse_variant(text: str) -> Tuple[str, ContinualTrainerConfig]:
+    """`NAME=METHOD OPTIONS` (a benchmark's --variants): the name and the config of a registered continual method with
+    ns-train options."""
+    name, equals, command = text.partition("=")
+    words = shlex.split(command)
+    if not equals or not name.strip() or not words:
+        raise SystemExit(
+            f"--variants {text!r}: expected NAME=METHOD [OPTIONS], e.g. 'lr=continual-ngp --pipeline.lr-decay-per-task 0.3'"
+        )
+    method, options = words[0], words[1:]
+    base = all_methods.get(method)
+    if not isinstance(base, ContinualTrainerConfig):
+        raise SystemExit(f"--variants {name}: {method} is not a registered continual method")
+    try:
+        config = tyro.cli(ContinualTrainerConfig, default=copy.deepcopy(base), args=options, console_outputs=False)
+    except SystemExit:
+        raise SystemExit(f"--variants {name}: {shlex.join(options)} are not options of ns-train {method}") from None
+    return name.strip(), config
 
 
 def on_demo(

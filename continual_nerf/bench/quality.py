@@ -15,22 +15,19 @@ trained again, so an interrupted benchmark resumes. `results.md` in the output f
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import re
-import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Literal, Optional, Tuple
 
 import tyro
-from nerfstudio.configs.method_configs import all_methods
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
-from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
+from continual_nerf.bench.demo_runs import DemoBenchmark, check_names, parse_variant
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -58,25 +55,6 @@ RECIPES: Dict[str, Recipe] = {
     "joint (upper bound)": (CONTINUAL_NGP_JOINT, None),
 }
 """What the benchmark trains, by the name its tables give it: a registered config and a change to it."""
-
-
-def parse_variant(text: str) -> Tuple[str, Recipe]:
-    """`NAME=METHOD OPTIONS` as a named recipe: a registered continual method with ns-train options."""
-    name, equals, command = text.partition("=")
-    words = shlex.split(command)
-    if not equals or not name.strip() or not words:
-        raise SystemExit(
-            f"--variants {text!r}: expected NAME=METHOD [OPTIONS], e.g. 'lr=continual-ngp --pipeline.lr-decay-per-task 0.3'"
-        )
-    method, options = words[0], words[1:]
-    base = all_methods.get(method)
-    if not isinstance(base, ContinualTrainerConfig):
-        raise SystemExit(f"--variants {name}: {method} is not a registered continual method")
-    try:
-        config = tyro.cli(ContinualTrainerConfig, default=copy.deepcopy(base), args=options, console_outputs=False)
-    except SystemExit:
-        raise SystemExit(f"--variants {name}: {shlex.join(options)} are not options of ns-train {method}") from None
-    return name.strip(), (config, None)
 
 
 @dataclass(frozen=True)
@@ -158,10 +136,10 @@ class QualityBenchmark(DemoBenchmark):
     def main(self) -> None:
         check_names("recipes", self.recipes, RECIPES)
         recipes = {name: RECIPES[name] for name in self.recipes}
-        for name, recipe in map(parse_variant, self.variants):
+        for name, config in map(parse_variant, self.variants):
             if name in recipes or name in RECIPES:
                 raise SystemExit(f"--variants {name}: a recipe has that name already")
-            recipes[name] = recipe
+            recipes[name] = (config, None)
         results: Dict[str, Dict[str, Dict[str, dict]]] = {}
         for scene in self.scenes:
             for setting in map(Setting.parse, self.settings):

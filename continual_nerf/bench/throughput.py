@@ -14,14 +14,14 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal
+from typing import Dict, List, Literal, Tuple
 
 import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, parse_variant
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, CONTINUAL_NGP_PAPER
@@ -87,18 +87,26 @@ class ThroughputBenchmark:
     continual-ngp's defaults, 90% with the paper's uniform batches at 10 tasks)."""
     data: Path = Path("data/continual-demo")
     """Where the demo scene is generated (and reused from)."""
+    variants: Tuple[str, ...] = ()
+    """More configurations to time, each NAME=METHOD OPTIONS: a registered method and ns-train options (e.g.
+    "table 2^19=continual-ngp --pipeline.model.log2-hashmap-size 19")."""
 
     def configs(self, output_dir: Path) -> Dict[str, ContinualTrainerConfig]:
         """continual-ngp with its defaults, with the paper's recipe and without replay (continual-ngp-incre), and
-        nerfacto."""
+        nerfacto; then the variants."""
         demo = ContinualDemoDataParserConfig(data=self.data)
         options = {"num_tasks": self.num_tasks, "train_num_rays_per_batch": self.rays_per_batch}
-        return {
+        configs = {
             REPLAY: on_demo(CONTINUAL_NGP, demo, self.device, output_dir, **options),
             PAPER: on_demo(CONTINUAL_NGP_PAPER, demo, self.device, output_dir, **options),
             REPLAY_OFF: on_demo(CONTINUAL_NGP_INCRE, demo, self.device, output_dir, **options),
             NERFACTO: nerfacto_on_demo(demo, self.device, output_dir, **options),
         }
+        for name, config in map(parse_variant, self.variants):
+            if name in configs:
+                raise SystemExit(f"--variants {name}: a configuration has that name already")
+            configs[name] = on_demo(config, demo, self.device, output_dir, **options)
+        return configs
 
     def last_task_trainer(self, config: ContinualTrainerConfig) -> ContinualTrainer:
         trainer = set_up_like_ns_train(config)
@@ -119,8 +127,9 @@ class ThroughputBenchmark:
         configs = self.configs(output_dir)
         result = Throughput(self.rays_per_batch)
         trainers = {name: self.last_task_trainer(config) for name, config in configs.items()}
-        for name in (REPLAY, PAPER):
-            result.replayed_share[name] = replayed_share(trainers[name])
+        for name, trainer in trainers.items():
+            if trainer.pipeline.replays:
+                result.replayed_share[name] = replayed_share(trainer)
         for name, trainer in trainers.items():
             result.first_step[name] = self.step_seconds(trainer, 0)
             for step in range(1, self.warmup_steps):
