@@ -127,9 +127,8 @@ class ThroughputBenchmark:
         configs = self.configs(output_dir)
         result = Throughput(self.rays_per_batch)
         trainers = {name: self.last_task_trainer(config) for name, config in configs.items()}
-        for name, trainer in trainers.items():
-            if trainer.pipeline.replays:
-                result.replayed_share[name] = replayed_share(trainer)
+        for name in (REPLAY, PAPER):  # against continual-ngp-incre: a variant may differ from it in more than replay
+            result.replayed_share[name] = replayed_share(trainers[name])
         for name, trainer in trainers.items():
             result.first_step[name] = self.step_seconds(trainer, 0)
             for step in range(1, self.warmup_steps):
