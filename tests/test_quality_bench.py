@@ -50,11 +50,16 @@ def test_a_bad_variant_ends_with_one_line(text: str, message: str):
     assert "\n" not in str(exit_info.value.code)
 
 
-def test_a_variant_may_not_take_a_built_in_name(tmp_path: Path):
-    benchmark = QualityBenchmark(
-        recipes=(), variants=("continual-ngp=continual-ngp",), output_dir=tmp_path / "out", data=tmp_path / "demo"
-    )
-    with pytest.raises(SystemExit, match="continual-ngp: a recipe has that name already"):
+@pytest.mark.parametrize(
+    "variants, taken",
+    [
+        (("continual-ngp=continual-ngp",), "continual-ngp"),
+        (("big table=continual-ngp", "bigtable=continual-ngp"), "bigtable"),
+    ],
+)
+def test_a_variant_may_not_take_a_name_or_run_folder_already_taken(tmp_path: Path, variants, taken: str):
+    benchmark = QualityBenchmark(recipes=(), variants=variants, output_dir=tmp_path / "out", data=tmp_path / "demo")
+    with pytest.raises(SystemExit, match=f"--variants {taken}: a recipe has that name"):
         benchmark.main()
 
 

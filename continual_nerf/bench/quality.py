@@ -137,8 +137,9 @@ class QualityBenchmark(DemoBenchmark):
         check_names("recipes", self.recipes, RECIPES)
         recipes = {name: RECIPES[name] for name in self.recipes}
         for name, config in map(parse_variant, self.variants):
-            if name in recipes or name in RECIPES:
-                raise SystemExit(f"--variants {name}: a recipe has that name already")
+            taken = [*RECIPES, *recipes]
+            if folder_name(name) in map(folder_name, taken):  # two names, one run folder: one would read the other's
+                raise SystemExit(f"--variants {name}: a recipe has that name (or run folder) already")
             recipes[name] = (config, None)
         results: Dict[str, Dict[str, Dict[str, dict]]] = {}
         for scene in self.scenes:
