@@ -136,10 +136,11 @@ class QualityBenchmark(DemoBenchmark):
     def main(self) -> None:
         check_names("recipes", self.recipes, RECIPES)
         recipes = {name: RECIPES[name] for name in self.recipes}
+        folders = set(map(folder_name, RECIPES))
         for name, config in map(parse_variant, self.variants):
-            taken = [*RECIPES, *recipes]
-            if folder_name(name) in map(folder_name, taken):  # two names, one run folder: one would read the other's
+            if folder_name(name) in folders:  # two names, one run folder: one would read the other's runs
                 raise SystemExit(f"--variants {name}: a recipe has that name (or run folder) already")
+            folders.add(folder_name(name))
             recipes[name] = (config, None)
         results: Dict[str, Dict[str, Dict[str, dict]]] = {}
         for scene in self.scenes:
