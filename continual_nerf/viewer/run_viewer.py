@@ -106,12 +106,12 @@ class TaskTravel:
         state = read_checkpoint(path)
         with self.lock:
             self.pipeline.load_pipeline(state["pipeline"], state["step"])
-        self.checkpoint.value = f"{path.name} (end of task {task + 1})"
         self.mean_psnr.value = mean_psnr_text(self.accuracy.mean_psnr[: task + 1])
         self.pictures.show(self.accuracy.num_tasks, self.accuracy.psnr[: task + 1])
         self.cameras.show(self.dataset, task)
         show_step(self.viewer, int(state["step"]))
         rerender(self.viewer)
+        self.checkpoint.value = f"{path.name} (end of task {task + 1})"  # last: the task is shown in full
 
 
 @dataclass
