@@ -13,7 +13,7 @@ from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig, Contin
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModelConfig
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
@@ -40,6 +40,8 @@ CONTINUAL_NGP = ContinualTrainerConfig(
         "fields": _adam(),
         # pose corrections (--pipeline.model.camera-optimizer.mode): nerfacto's rate, constant as the others
         "camera_opt": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
+        # colour transforms (--pipeline.model.use-color-transform)
+        COLOR_TRANSFORM_GROUP: {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": None},
     },
     viewer=ContinualViewerConfig(),
     vis="viewer",

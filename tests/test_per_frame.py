@@ -18,6 +18,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
 from continual_nerf.compilation import random_rays
+from continual_nerf.core.color_transform_fit import fit_gains, fit_open_task_color_transforms, render_open_task_pixels
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig, camera_ids
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
@@ -211,6 +212,49 @@ def test_test_frames_render_with_their_nearest_training_frames_code_and_colour_t
     # ns-eval and the viewer's eval images take their cameras from these loaders: the metadata comes along
     loaded = [camera.metadata[TRAINING_FRAME].item() for camera, _ in datamanager.fixed_indices_eval_dataloader]
     assert loaded == nearest.tolist()
+
+
+def test_a_gain_is_fitted_from_the_pixels_that_agree_not_from_what_the_model_has_not_seen():
+    generator = torch.Generator().manual_seed(0)
+    rendered = 0.1 + 0.6 * torch.rand(3000, 3, generator=generator)
+    recorded = rendered * torch.tensor([0.7, 1.2, 0.9])
+    unseen = torch.arange(3000) % 10 < 4  # 40 % of the pixels show what no earlier task saw
+    recorded[unseen] = torch.rand(int(unseen.sum()), 3, generator=generator)
+    recorded[:100] = 1.0  # clipped: no gain can be read from them
+    rows = torch.arange(3000) % 2
+    rows[-20:] = 2  # too few pixels
+    gains = fit_gains(rendered, recorded, rows)
+    assert set(gains) == {0, 1}, "a row without enough usable pixels keeps its start"
+    for gain in gains.values():
+        torch.testing.assert_close(gain, torch.tensor([0.7, 1.2, 0.9]), atol=0.01, rtol=0)
+
+
+def test_the_open_tasks_colour_transforms_start_at_its_frames_exposure():
+    datamanager = ContinualDataManagerConfig(dataparser=demo_parser(num_frames=16), num_tasks=2).setup(device="cpu")
+    dataset = datamanager.train_dataset
+    model = model_with_codes_and_poses(
+        dataset.metadata[FRAME_TASK].tolist(), dataset.metadata[FRAME_CAMERA].tolist(), use_color_transform=True
+    )
+    datamanager.release(1)
+    before = model.color_transforms.transforms.detach().clone()
+    rendered, _, frames = render_open_task_pixels(model, datamanager)
+    start, end = dataset.open_task_pixel_range()
+    all_pixels = torch.arange(start, end)
+    task_frames = dataset.frames_of_task(1)
+    gains = 0.5 + 0.4 * torch.rand(len(dataset), 3)  # each frame of the open task recorded at its own exposure
+    with torch.no_grad():
+        model.eval()
+        rays = datamanager.train_ray_generator(datamanager.ray_indices(all_pixels))
+        rays.metadata[TRAINING_FRAME] = rays.camera_indices
+        exact = model(rays)["rgb"]
+    dataset.task_pixels = exact * gains[rays.camera_indices.view(-1)]
+    fit_open_task_color_transforms(model, datamanager)
+    after = model.color_transforms.transforms.detach()
+    assert set(frames.tolist()) == set(task_frames.tolist()), "every frame of the open task is rendered"
+    assert len(rendered) == len(frames)
+    assert torch.equal(after[dataset.frames_of_task(0)], before[dataset.frames_of_task(0)]), "closed rows stay"
+    for frame in task_frames.tolist():
+        torch.testing.assert_close(after[frame], torch.diag(gains[frame]) @ torch.eye(3, 4), atol=0.01, rtol=0)
 
 
 @pytest.mark.parametrize("option", ["use_appearance_embedding", "use_color_transform"])

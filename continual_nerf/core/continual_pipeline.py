@@ -20,6 +20,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import evaluate_frames
@@ -260,6 +261,10 @@ class ContinualPipeline(VanillaPipeline):
         """Let the model learn the appearance codes and pose corrections of the open task's frames only."""
         if isinstance(self.model, ContinualNGPModel):
             self.model.open_task(self.datamanager.data_task, start)
+            if start and self.datamanager.data_task > 0 and self.model.fits_color_transforms:
+                if self.datamanager.train_dataset.open_task != self.datamanager.data_task:
+                    self.datamanager.open_released_task()
+                fit_open_task_color_transforms(self.model, self.datamanager)
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
@@ -37,6 +37,9 @@ from continual_nerf.nerfstudio_compat import (
 )
 from continual_nerf.validated_config import ValidatedConfig
 
+COLOR_TRANSFORM_GROUP = "color_transforms"
+"""Optimizer parameter group of the colour transforms (--optimizers.color-transforms.optimizer.lr)."""
+
 
 @dataclass
 class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
@@ -65,6 +68,9 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     use_color_transform: bool = False
     """An affine colour transform of the rendered colour (exposure, white balance, camera gain) per --appearance-codes
     group, learned while its task is open, frozen when it closes; the field keeps one colour for all; off: the paper."""
+    color_transform_start: Literal["previous-task", "fitted"] = "fitted"
+    """Where the open task's colour transforms start: the previous task's (same camera), or those times a per-channel
+    gain fitted between the model's render of the task's frames and their pixels (an exposure jump at the switch)."""
     appearance_codes: AppearanceGroups = "image"
     """What one appearance code or colour transform covers: one training image, or every image one camera took in
     one task."""
@@ -157,6 +163,11 @@ class ContinualNGPModel(NerfactoModel):
             *(self.camera_optimizer.parameters()),
         ]
 
+    @property
+    def fits_color_transforms(self) -> bool:
+        """Whether a task's colour transforms start fitted to its frames (--pipeline.model.color-transform-start)."""
+        return self.color_transforms is not None and self.config.color_transform_start == "fitted"
+
     def open_task(self, task: int, start: bool) -> None:
         """From now on only `task`'s codes, colour transforms and pose corrections change; `start`: the task opens now
         (rather than a resumed run continuing it), and its codes and transforms start from the previous task's."""
@@ -186,7 +197,7 @@ class ContinualNGPModel(NerfactoModel):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         param_groups = super().get_param_groups()
         if self.color_transforms is not None:
-            param_groups["fields"] += list(self.color_transforms.parameters())
+            param_groups[COLOR_TRANSFORM_GROUP] = list(self.color_transforms.parameters())
         return param_groups
 
     def get_outputs(self, ray_bundle: RayBundle):
