@@ -58,6 +58,11 @@ FEATURES: Dict[str, Dict[str, Any]] = {
     "codes per camera and task": {"use_appearance_embedding": True, "appearance_codes": "camera-task"},
     "colour transform per image": {"use_color_transform": True, "appearance_codes": "image"},
     "colour transform per camera and task": {"use_color_transform": True, "appearance_codes": "camera-task"},
+    "colour transform per image, not fitted": {
+        "use_color_transform": True,
+        "appearance_codes": "image",
+        "color_transform_start": "previous-task",
+    },
     "codes and colour transform per image": {
         "use_appearance_embedding": True,
         "use_color_transform": True,
@@ -78,6 +83,7 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("exposure +-30 %", "codes per camera and task"),
         ("exposure +-30 %", "colour transform per image"),
         ("exposure +-30 %", "colour transform per camera and task"),
+        ("exposure +-30 %", "colour transform per image, not fitted"),
         ("exposure +-30 %", "codes and colour transform per image"),
         ("poses off 1 deg, 1 %", "off"),
         ("poses off 1 deg, 1 %", "pose refinement"),
