@@ -1,17 +1,23 @@
-"""The pose errors python -m continual_nerf.bench.real_capture reports: after the rigid motion that fits best."""
+"""What python -m continual_nerf.bench.real_capture measures: pose errors after the rigid motion that fits best, and\nthe bound of colour transforms at the true exposure."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from helpers import rotation
+import torch
+from helpers import DEMO_CACHE, demo_parser, rotation
+from PIL import Image
 
 from continual_nerf.bench.real_capture import (
     FEATURES,
+    TRUE_EXPOSURE,
     RealCaptureBenchmark,
     fitted_onto,
     reports_pose_errors,
     rms_errors,
+    train_at_true_exposure,
 )
 from continual_nerf.dataparsers import demo_capture
 
@@ -72,3 +78,24 @@ def test_every_feature_sets_model_options_the_run_validates(tmp_path, feature):
     config.pipeline.validate()
     model = config.pipeline.model
     assert all(getattr(model, option) == value for option, value in FEATURES[feature].items())
+
+
+def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_with(tmp_path, single_thread):
+    bench = RealCaptureBenchmark(
+        data=DEMO_CACHE, output_dir=tmp_path, setting="2x3", small_model=True, rays_per_batch=64
+    )
+    exposed = dataclasses.replace(demo_parser(num_frames=16), exposure_strength=0.3, exposure_segments=2)
+    trainer = train_at_true_exposure(bench.config(exposed, TRUE_EXPOSURE, tmp_path / "run"), exposed)
+    transforms = trainer.pipeline.model.color_transforms.transforms.detach()
+    assert torch.equal(transforms[:, :, 3], torch.zeros(len(transforms), 3)), "gains, no offsets"
+    gains = transforms[:, :, :3].diagonal(dim1=1, dim2=2)
+    assert gains.std(dim=0).min() > 0.01, "the frames were recorded at different gains and keep them after training"
+    clean = demo_parser(num_frames=16).setup().get_dataparser_outputs("train").image_filenames
+    recorded = exposed.setup().get_dataparser_outputs("train").image_filenames
+    frames = trainer.pipeline.datamanager.task_split.all_train_frames()
+    for row in (0, len(frames) - 1):  # the first and last training frames: a gain of each task
+        exact = np.asarray(Image.open(clean[frames[row]]), dtype=np.float64)[..., :3] / 255
+        seen = np.asarray(Image.open(recorded[frames[row]]), dtype=np.float64)[..., :3] / 255
+        unclipped = (seen < 0.98) & (exact > 0.1)
+        ratios = [np.median(seen[..., c][unclipped[..., c]] / exact[..., c][unclipped[..., c]]) for c in range(3)]
+        np.testing.assert_allclose(ratios, gains[row].numpy(), rtol=0.02)

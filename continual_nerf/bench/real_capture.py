@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import tyro
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
@@ -35,12 +36,12 @@ from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
 from continual_nerf.bench.quality import RunSummary, Setting
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
-from continual_nerf.core.ngp_model import ContinualNGPModelConfig
+from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.per_frame import refined_poses
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.demo_capture import pose_errors, trajectory_length
 from continual_nerf.method_configs import CONTINUAL_NGP
-from continual_nerf.recipes import quiet_config, train_like_ns_train
+from continual_nerf.recipes import quiet_config, set_up_like_ns_train, train_like_ns_train
 
 Scene = Literal["room", "street"]
 
@@ -52,6 +53,9 @@ CAPTURES: Dict[str, Dict[str, float]] = {
 }
 """The demo's capture options of each flaw (exposure segments follow the number of tasks)."""
 
+TRUE_EXPOSURE = "colour transform at the true exposure, a bound"
+"""Not a feature: every frame's transform held at the exposure and white balance the demo recorded it with, what
+learned transforms can at best reach."""
 FEATURES: Dict[str, Dict[str, Any]] = {
     "off": {},
     "codes per image": {"use_appearance_embedding": True, "appearance_codes": "image"},
@@ -69,6 +73,7 @@ FEATURES: Dict[str, Dict[str, Any]] = {
         "appearance_codes": "image",
     },
     "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
+    TRUE_EXPOSURE: {"use_color_transform": True, "appearance_codes": "image", "color_transform_start": "previous-task"},
 }
 """continual-ngp's model options of each feature."""
 
@@ -84,6 +89,7 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("exposure +-30 %", "colour transform per image"),
         ("exposure +-30 %", "colour transform per camera and task"),
         ("exposure +-30 %", "colour transform per image, not fitted"),
+        ("exposure +-30 %", TRUE_EXPOSURE),
         ("exposure +-30 %", "codes and colour transform per image"),
         ("poses off 1 deg, 1 %", "off"),
         ("poses off 1 deg, 1 %", "pose refinement"),
@@ -232,7 +238,7 @@ class RealCaptureBenchmark(DemoBenchmark):
         demo = self.demo(scene, capture)
         config = self.config(demo, feature, folder)
         CONSOLE.print(f"[bold]{scene}, {capture}: training continual-ngp, {feature}")
-        trainer = train_like_ns_train(config)
+        trainer = train_at_true_exposure(config, demo) if feature == TRUE_EXPOSURE else train_like_ns_train(config)
         matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
         run = CaptureRun(
             quality=RunSummary.of(matrix, trainer.pipeline.budget.total_seconds),
@@ -258,6 +264,11 @@ class RealCaptureBenchmark(DemoBenchmark):
         config.save_only_latest_checkpoint = True
         config.machine.seed = self.seed
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **FEATURES[feature])
+        if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
+            config.optimizers = {
+                **config.optimizers,
+                COLOR_TRANSFORM_GROUP: {"optimizer": AdamOptimizerConfig(lr=0.0), "scheduler": None},
+            }
         return config
 
     def title(self, scene: str) -> str:
@@ -287,6 +298,28 @@ TABLE_COLUMNS = (
     "capture", "feature", "final mean PSNR (dB)", "vs clean, off (dB)", "right after own task (dB)",
     "rotation error (deg) before -> after", "translation error (% of length) before -> after", "training s",
 )  # fmt: skip
+
+
+def _keep_rows(task: int, tasks: torch.Tensor, cameras: torch.Tensor) -> None:
+    """A task switch leaves the transforms as they are."""
+
+
+def train_at_true_exposure(config: ContinualTrainerConfig, demo: ContinualDemoDataParserConfig) -> ContinualTrainer:
+    """Train with every training frame's colour transform at the gains the demo recorded the frame with (exposure and
+    white balance; a clipped pixel stays clipped), held there for the whole run."""
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    model, datamanager = trainer.pipeline.model, trainer.pipeline.datamanager
+    assert isinstance(model, ContinualNGPModel) and model.color_transforms is not None
+    parser = demo.setup()
+    gains = torch.as_tensor(parser.frame_gains(parser.capture()), dtype=torch.float32)
+    frames = torch.as_tensor(datamanager.task_split.all_train_frames())
+    with torch.no_grad():
+        model.color_transforms.transforms.copy_(torch.diag_embed(gains[frames]) @ torch.eye(3, 4))
+    model.color_transforms.start_task = _keep_rows
+    model.open_task(datamanager.data_task, start=False)  # rows outside the open task are restored to these
+    trainer.train()
+    return trainer
 
 
 def table_row(key: str, run: CaptureRun, clean: CaptureRun) -> List[str]:
