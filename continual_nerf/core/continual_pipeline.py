@@ -259,12 +259,18 @@ class ContinualPipeline(VanillaPipeline):
 
     def _open_frame_parameters(self, start: bool) -> None:
         """Let the model learn the appearance codes and pose corrections of the open task's frames only."""
-        if isinstance(self.model, ContinualNGPModel):
-            self.model.open_task(self.datamanager.data_task, start)
-            if start and self.datamanager.data_task > 0 and self.model.fits_color_transforms:
-                if self.datamanager.train_dataset.open_task != self.datamanager.data_task:
-                    self.datamanager.open_released_task()
-                fit_open_task_color_transforms(self.model, self.datamanager)
+        if not isinstance(self.model, ContinualNGPModel):
+            return
+        self.model.open_task(self.datamanager.data_task, start)
+        if start and self.datamanager.data_task > 0 and self.model.fits_color_transforms:
+            self._fit_color_transforms(self.model)
+
+    def _fit_color_transforms(self, model: ContinualNGPModel) -> None:
+        """Start the open task's colour transforms at its frames' exposure (see color_transform_fit)."""
+        if self.datamanager.train_dataset.open_task != self.datamanager.data_task:
+            self.datamanager.open_released_task()
+        fit_open_task_color_transforms(model, self.datamanager)
+        distributed.copy_from_main(model, self.device)  # every rank starts the task at rank 0's fit
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
