@@ -18,7 +18,12 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
 from continual_nerf.compilation import random_rays
-from continual_nerf.core.color_transform_fit import fit_gains, fit_open_task_color_transforms, render_open_task_pixels
+from continual_nerf.core.color_transform_fit import (
+    fit_gains,
+    fit_open_task_color_transforms,
+    fit_summary,
+    render_open_task_pixels,
+)
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig, camera_ids
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
@@ -225,6 +230,7 @@ def test_a_gain_is_fitted_from_the_pixels_that_agree_not_from_what_the_model_has
     rows[-20:] = 2  # too few pixels
     gains = fit_gains(rendered, recorded, rows)
     assert set(gains) == {0, 1}, "a row without enough usable pixels keeps its start"
+    assert fit_summary(gains, num_rows=3) == "gains x0.93 to x0.93 fitted to 2 of 3 colour transforms"
     for gain in gains.values():
         torch.testing.assert_close(gain, torch.tensor([0.7, 1.2, 0.9]), atol=0.01, rtol=0)
 
@@ -248,7 +254,9 @@ def test_the_open_tasks_colour_transforms_start_at_its_frames_exposure():
         rays.metadata[TRAINING_FRAME] = rays.camera_indices
         exact = model(rays)["rgb"]
     dataset.task_pixels = exact * gains[rays.camera_indices.view(-1)]
-    fit_open_task_color_transforms(model, datamanager)
+    assert fit_open_task_color_transforms(model, datamanager).endswith(
+        f"fitted to {len(dataset.frames_of_task(1))} of {len(dataset.frames_of_task(1))} colour transforms"
+    )
     after = model.color_transforms.transforms.detach()
     assert set(frames.tolist()) == set(task_frames.tolist()), "every frame of the open task is rendered"
     assert len(rendered) == len(frames)

@@ -269,8 +269,10 @@ class ContinualPipeline(VanillaPipeline):
         """Start the open task's colour transforms at its frames' exposure (see color_transform_fit)."""
         if self.datamanager.train_dataset.open_task != self.datamanager.data_task:
             self.datamanager.open_released_task()
-        fit_open_task_color_transforms(model, self.datamanager)
+        fitted = fit_open_task_color_transforms(model, self.datamanager)
         distributed.copy_from_main(model, self.device)  # every rank starts the task at rank 0's fit
+        if distributed.is_main():
+            CONSOLE.print(f"Task {self.datamanager.data_task + 1}/{self.known_tasks} opens with {fitted}")
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
