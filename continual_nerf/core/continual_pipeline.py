@@ -266,9 +266,8 @@ class ContinualPipeline(VanillaPipeline):
             self._fit_color_transforms(self.model)
 
     def _fit_color_transforms(self, model: ContinualNGPModel) -> None:
-        """Start the open task's colour transforms at its frames' exposure (see color_transform_fit)."""
-        if self.datamanager.train_dataset.open_task != self.datamanager.data_task:
-            self.datamanager.open_released_task()
+        """Start the open task's colour transforms at its frames' exposure (see color_transform_fit); `release` has read
+        the task's pixels."""
         fitted = fit_open_task_color_transforms(model, self.datamanager)
         distributed.copy_from_main(model, self.device)  # every rank starts the task at rank 0's fit
         if distributed.is_main():
