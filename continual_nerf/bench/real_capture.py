@@ -53,6 +53,12 @@ CAPTURES: Dict[str, Dict[str, float]] = {
 }
 """The demo's capture options of each flaw (exposure segments follow the number of tasks)."""
 
+TRANSFORMS_NOT_FITTED: Dict[str, Any] = {
+    "use_color_transform": True,
+    "appearance_codes": "image",
+    "color_transform_start": "previous-task",
+}
+"""A colour transform per image that starts each task at the previous task's, without the fit."""
 TRUE_EXPOSURE = "colour transform at the true exposure, a bound"
 """Not a feature: every frame's transform held at the exposure and white balance the demo recorded it with, what
 learned transforms can at best reach."""
@@ -62,18 +68,14 @@ FEATURES: Dict[str, Dict[str, Any]] = {
     "codes per camera and task": {"use_appearance_embedding": True, "appearance_codes": "camera-task"},
     "colour transform per image": {"use_color_transform": True, "appearance_codes": "image"},
     "colour transform per camera and task": {"use_color_transform": True, "appearance_codes": "camera-task"},
-    "colour transform per image, not fitted": {
-        "use_color_transform": True,
-        "appearance_codes": "image",
-        "color_transform_start": "previous-task",
-    },
+    "colour transform per image, not fitted": TRANSFORMS_NOT_FITTED,
     "codes and colour transform per image": {
         "use_appearance_embedding": True,
         "use_color_transform": True,
         "appearance_codes": "image",
     },
     "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
-    TRUE_EXPOSURE: {"use_color_transform": True, "appearance_codes": "image", "color_transform_start": "previous-task"},
+    TRUE_EXPOSURE: TRANSFORMS_NOT_FITTED,  # and held at the true gains (train_at_true_exposure)
 }
 """continual-ngp's model options of each feature."""
 
