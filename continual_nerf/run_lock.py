@@ -13,6 +13,7 @@ import atexit
 import contextlib
 import fcntl
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Optional
@@ -63,6 +64,7 @@ def claim_run_folder(folder: Path) -> Optional[int]:
         try:
             holder = None if created else recorded_pid(descriptor)
             if not lock(descriptor, holder):
+                holder = holder or written_pid(descriptor)
                 process = "" if holder is None else f" (process {holder})"
                 raise ContinualConfigError(
                     f"{folder} is in use by another run{process}; choose another --timestamp or --experiment-name, "
@@ -97,6 +99,14 @@ def lock(descriptor: int, holder: Optional[int]) -> bool:
 def recorded_pid(descriptor: int) -> Optional[int]:
     text = os.pread(descriptor, 32, 0).decode(errors="replace").strip()
     return int(text) if text.isdigit() else None
+
+
+def written_pid(descriptor: int, seconds: float = 1.0) -> Optional[int]:
+    """The PID a run that has just locked the file writes right after locking it; None if it never comes."""
+    deadline = time.monotonic() + seconds
+    while (holder := recorded_pid(descriptor)) is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return holder
 
 
 def same_file(descriptor: int, path: Path) -> bool:

@@ -103,6 +103,21 @@ def test_without_file_locks_the_recorded_pid_decides(tmp_path, monkeypatch, hold
         release_run_folder(tmp_path)
 
 
+def test_a_run_that_has_locked_but_not_yet_written_its_pid_is_named_once_it_has(tmp_path):
+    """Started at once, the second run can meet the first between its lock and its PID: it waits for the PID."""
+    path = tmp_path / LOCK_NAME
+    descriptor = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    run_lock.fcntl.flock(descriptor, run_lock.fcntl.LOCK_EX | run_lock.fcntl.LOCK_NB)
+    writer = threading.Timer(0.1, lambda: os.pwrite(descriptor, b"4242\n", 0))
+    writer.start()
+    try:
+        with pytest.raises(ContinualConfigError, match="is in use by another run \\(process 4242\\)"):
+            claim_run_folder(tmp_path)
+    finally:
+        writer.join()
+        os.close(descriptor)
+
+
 @pytest.mark.slow
 def test_two_ns_train_started_at_once_into_one_folder_leave_one_runs_results(tmp_path):
     outputs = tmp_path / "outputs"
