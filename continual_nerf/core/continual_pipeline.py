@@ -52,6 +52,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     lr_decay_per_task: float = 1.0
     """Factor every learning rate falls to, exponentially, over each task's budget, restarting at the next task;
     1 keeps it constant (the paper)."""
+    lr_decay_start: float = 0.0
+    """Share of each task's budget spent at the configured rate before --pipeline.lr-decay-per-task starts (0: the
+    rate falls from the task's start)."""
     pose_lr_decay_per_task: float = 0.1
     """Factor the pose corrections' learning rate (--pipeline.model.camera-optimizer.mode) falls to over each task's
     budget instead: a task's frames refine anew, from nerfacto's 1e-3 down to its final 1e-4; 1 keeps it constant."""
@@ -62,6 +65,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             value = getattr(self, name)
             if not 0 < value <= 1:
                 raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in (0, 1], got {value}")
+        if not 0 <= self.lr_decay_start < 1:
+            raise ContinualConfigError(f"--pipeline.lr-decay-start must be in [0, 1), got {self.lr_decay_start}")
         learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
         if learns_per_frame and not self.datamanager.frames_known_at_start():
             raise ContinualConfigError(
@@ -195,11 +200,15 @@ class ContinualPipeline(VanillaPipeline):
         ]
 
     def _decay_learning_rates(self, optimizers: Optimizers, step: int) -> None:
-        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task), the pose
-        corrections' times pose_lr_decay_per_task ** (progress through the task)."""
+        """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task after
+        lr_decay_start), the pose corrections' times pose_lr_decay_per_task ** (progress through the task)."""
+        progress = self.budget.progress()
+        start = self.config.lr_decay_start
         for name, optimizer in optimizers.optimizers.items():
-            decay = self.config.pose_lr_decay_per_task if name == POSE_GROUP else self.config.lr_decay_per_task
-            factor = decay ** self.budget.progress()
+            if name == POSE_GROUP:
+                factor = self.config.pose_lr_decay_per_task**progress
+            else:
+                factor = self.config.lr_decay_per_task ** (max(progress - start, 0.0) / (1 - start))
             for group in optimizer.param_groups:
                 group.setdefault(BASE_LR_KEY, group["lr"])  # in the optimizer's state: a resumed run keeps it
                 group["lr"] = group[BASE_LR_KEY] * factor
