@@ -19,7 +19,8 @@ from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 
 def _adam() -> dict:
-    # constant learning rate: a decaying schedule would leave later tasks less to learn with than earlier ones
+    # no schedule over the run: it would leave later tasks less to learn with than earlier ones (the pipeline's
+    # --pipeline.lr-decay-per-task restarts with every task instead)
     return {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": None}
 
 
@@ -34,6 +35,9 @@ CONTINUAL_NGP = ContinualTrainerConfig(
     pipeline=ContinualPipelineConfig(
         datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
         model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
+        # the last quarter of each task at a falling rate: what each task ends with, and the oracle copies, has settled
+        lr_decay_per_task=0.1,
+        lr_decay_start=0.75,
     ),
     optimizers={
         "proposal_networks": _adam(),
@@ -72,10 +76,12 @@ continual_ngp_stream = MethodSpecification(
 
 
 def _variant(config: ContinualTrainerConfig, method_name: str, **datamanager: object) -> ContinualTrainerConfig:
-    """`config` under another name with some datamanager options changed: a baseline is a configuration."""
+    """`config` under another name with some datamanager options changed and the paper's constant learning rates: a
+    baseline is a configuration."""
     config = copy.deepcopy(config)
     config.method_name = method_name
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **datamanager)
+    config.pipeline.lr_decay_per_task, config.pipeline.lr_decay_start = 1.0, 0.0
     return config
 
 
