@@ -18,6 +18,7 @@ from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
 from continual_nerf.dataparsers import demo_capture, demo_scene, demo_street
+from continual_nerf.dataparsers.demo_capture import PoseNoiseKind
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
 
@@ -53,10 +54,13 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """Each camera records colour with its own response: per-channel gains within 1 +- this, a gamma within 1 +- half of
     it (the street's three cameras then disagree); 0: identical cameras."""
     pose_noise_degrees: float = 0.0
-    """Root mean square rotation error of the poses the parser returns, smooth along the capture (the images stay
-    rendered from the true poses)."""
+    """Root mean square rotation error of the poses the parser returns (the images stay rendered from the true
+    poses)."""
     pose_noise_translation: float = 0.0
     """Root mean square position error of the poses the parser returns, as a fraction of the trajectory's length."""
+    pose_noise_kind: PoseNoiseKind = "smooth"
+    """How the pose errors vary along the capture: smooth (drift, latency: VIO, motion capture) or drawn anew for
+    every instant (each image registered on its own: COLMAP)."""
 
     def validate(self) -> None:
         super().validate()
@@ -179,7 +183,7 @@ class ContinualDemoDataParser(DataParser):
             return capture.poses
         rng = demo_capture.effect_rng(c.seed, demo_capture.POSE_STREAM)
         return demo_capture.noisy_poses(
-            capture.poses, capture.instants, c.pose_noise_degrees, c.pose_noise_translation, rng
+            capture.poses, capture.instants, c.pose_noise_degrees, c.pose_noise_translation, rng, c.pose_noise_kind
         )
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:

@@ -8,6 +8,7 @@ draws nothing and the scene, its path and the other effects stay as they are.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -20,7 +21,8 @@ DRIFT_SHARE = 1 / 5
 GAMMA_SHARE = 1 / 2
 """A camera's gamma departs from 1 by up to this share of the response strength."""
 NOISE_CYCLES = (0.5, 3.0)
-"""Pose errors are sums of sinusoids of this many cycles per capture (smooth, like drift or latency)."""
+"""Smooth pose errors are sums of sinusoids of this many cycles per capture (like drift or latency)."""
+PoseNoiseKind = Literal["smooth", "independent"]
 
 
 def effect_rng(seed: int, stream: int) -> np.random.Generator:
@@ -81,21 +83,33 @@ def smooth_curves(num_instants: int, dims: int, rng: np.random.Generator) -> np.
     return curves / np.sqrt((curves**2).sum(axis=-1).mean())
 
 
+def independent_curves(num_instants: int, dims: int, rng: np.random.Generator) -> np.ndarray:
+    """(num_instants, dims) independent normal draws per instant, scaled to a root mean square norm of 1."""
+    draws = rng.normal(size=(num_instants, dims))
+    return draws / np.sqrt((draws**2).sum(axis=-1).mean())
+
+
 def trajectory_length(positions: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=-1).sum())
 
 
 def noisy_poses(
-    poses: np.ndarray, instants: np.ndarray, degrees: float, translation: float, rng: np.random.Generator
+    poses: np.ndarray,
+    instants: np.ndarray,
+    degrees: float,
+    translation: float,
+    rng: np.random.Generator,
+    kind: PoseNoiseKind = "smooth",
 ) -> np.ndarray:
-    """`poses` (N, 3, 4) with a smooth error per capture instant (a rig's cameras share it): a rotation of root mean
-    square angle `degrees` about the camera centre and a shift of root mean square length `translation` times the
-    trajectory's length."""
+    """`poses` (N, 3, 4) with an error per capture instant (a rig's cameras share it), smooth along the capture or
+    drawn anew at every instant (`kind`): a rotation of root mean square angle `degrees` about the camera centre and a
+    shift of root mean square length `translation` times the trajectory's length."""
     num_instants = int(instants.max()) + 1
     first_of_instant = np.unique(instants, return_index=True)[1]
     length = trajectory_length(poses[first_of_instant, :, 3])
-    rotations = rotation_matrices(np.deg2rad(degrees) * smooth_curves(num_instants, 3, rng))
-    shifts = translation * length * smooth_curves(num_instants, 3, rng)
+    curves = smooth_curves if kind == "smooth" else independent_curves
+    rotations = rotation_matrices(np.deg2rad(degrees) * curves(num_instants, 3, rng))
+    shifts = translation * length * curves(num_instants, 3, rng)
     noisy = poses.copy()
     noisy[:, :, :3] = rotations[instants] @ poses[:, :, :3]
     noisy[:, :, 3] += shifts[instants]

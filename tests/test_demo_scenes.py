@@ -114,6 +114,21 @@ def test_pose_noise_moves_the_returned_poses_by_the_set_amounts_and_leaves_the_i
     assert np.abs(np.diff(degrees)).max() < 0.3 * degrees.max(), "smooth along the capture, as drift is"
 
 
+def test_independent_pose_noise_has_the_set_amounts_and_no_correlation_between_neighbouring_frames():
+    clean_outputs = demo(num_frames=120).setup().get_dataparser_outputs("train")
+    options = {"pose_noise_degrees": 1.0, "pose_noise_translation": 0.01}
+    outputs = demo(num_frames=120, pose_noise_kind="independent", **options).setup().get_dataparser_outputs("train")
+    true, noisy = clean_outputs.cameras.camera_to_worlds.double().numpy(), outputs.cameras.camera_to_worlds.double()
+    degrees, distances = demo_capture.pose_errors(noisy.numpy(), true)
+    assert np.sqrt((degrees**2).mean()) == pytest.approx(1.0, rel=1e-3)
+    assert np.sqrt((distances**2).mean()) / demo_capture.trajectory_length(true[:, :, 3]) == pytest.approx(
+        0.01, rel=1e-3
+    )
+    shifts = noisy.numpy()[:, :, 3] - true[:, :, 3]
+    neighbours = np.corrcoef(shifts[:-1].ravel(), shifts[1:].ravel())[0, 1]
+    assert abs(neighbours) < 0.3, "each instant's error is drawn on its own, as when each image is registered alone"
+
+
 def test_the_rig_shares_one_pose_error_per_instant():
     clean_outputs = demo(scene="street").setup().get_dataparser_outputs("train")
     outputs = demo(scene="street", pose_noise_translation=0.02).setup().get_dataparser_outputs("train")

@@ -99,3 +99,22 @@ def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_wit
         unclipped = (seen < 0.98) & (exact > 0.1)
         ratios = [np.median(seen[..., c][unclipped[..., c]] / exact[..., c][unclipped[..., c]]) for c in range(3)]
         np.testing.assert_allclose(ratios, gains[row].numpy(), rtol=0.02)
+
+
+def test_only_the_chosen_captures_and_features_train_beside_the_reference(tmp_path, monkeypatch):
+    bench = RealCaptureBenchmark(
+        data=tmp_path / "data",
+        output_dir=tmp_path / "bench",
+        captures=("poses off 1 deg, 1 %",),
+        features=("pose refinement",),
+    )
+    trained = []
+    monkeypatch.setattr(bench, "run", lambda scene, capture, feature: trained.append((capture, feature)))
+    bench.run_scene("room")
+    assert trained == [("poses off 1 deg, 1 %", "pose refinement"), ("clean", "off")]
+
+
+def test_an_unknown_capture_is_refused_in_one_line(tmp_path):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", captures=("fog",))
+    with pytest.raises(SystemExit, match="--captures: unknown fog"):
+        bench.main()
