@@ -74,19 +74,22 @@ def captured(image: np.ndarray, gain: np.ndarray, response: CameraResponse) -> n
     return np.round(np.clip(value, 0.0, 1.0) * 255).astype(np.uint8)
 
 
+def unit_rms(curves: np.ndarray) -> np.ndarray:
+    """`curves` (num_instants, dims) scaled to a root mean square norm of 1 over the instants."""
+    return curves / np.sqrt((curves**2).sum(axis=-1).mean())
+
+
 def smooth_curves(num_instants: int, dims: int, rng: np.random.Generator) -> np.ndarray:
     """(num_instants, dims) sums of three sinusoids along the capture, scaled to a root mean square norm of 1."""
     along = np.linspace(0.0, 1.0, num_instants)[:, None, None]
     cycles = rng.uniform(*NOISE_CYCLES, size=(1, dims, 3))
     phases = rng.uniform(0, 2 * np.pi, size=(1, dims, 3))
-    curves = np.sin(2 * np.pi * cycles * along + phases).sum(axis=-1)
-    return curves / np.sqrt((curves**2).sum(axis=-1).mean())
+    return unit_rms(np.sin(2 * np.pi * cycles * along + phases).sum(axis=-1))
 
 
 def independent_curves(num_instants: int, dims: int, rng: np.random.Generator) -> np.ndarray:
     """(num_instants, dims) independent normal draws per instant, scaled to a root mean square norm of 1."""
-    draws = rng.normal(size=(num_instants, dims))
-    return draws / np.sqrt((draws**2).sum(axis=-1).mean())
+    return unit_rms(rng.normal(size=(num_instants, dims)))
 
 
 def trajectory_length(positions: np.ndarray) -> float:
