@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import List, Tuple
+
 import numpy as np
 import pytest
 import torch
@@ -98,33 +101,35 @@ def test_each_camera_of_the_rig_has_its_own_colour_response():
     assert np.abs(gains[:, None] - gains[None]).max() > 0.1, "the cameras do not see colour alike"
 
 
-def test_pose_noise_moves_the_returned_poses_by_the_set_amounts_and_leaves_the_images_exact():
+def noisy_demo_poses(kind: str) -> Tuple[np.ndarray, np.ndarray, List[Path], List[Path]]:
+    """The true and the returned training poses of the demo with 1 degree and 1 % pose noise of `kind`, and the
+    image files of each."""
     clean_outputs = demo(num_frames=120).setup().get_dataparser_outputs("train")
-    outputs = (
-        demo(num_frames=120, pose_noise_degrees=1.0, pose_noise_translation=0.01)
-        .setup()
-        .get_dataparser_outputs("train")
-    )
-    assert outputs.image_filenames == clean_outputs.image_filenames, "images stay rendered from the true poses"
-    true, noisy = clean_outputs.cameras.camera_to_worlds.double().numpy(), outputs.cameras.camera_to_worlds.double()
-    degrees, distances = demo_capture.pose_errors(noisy.numpy(), true)
-    length = demo_capture.trajectory_length(true[:, :, 3])
+    options = {"pose_noise_degrees": 1.0, "pose_noise_translation": 0.01, "pose_noise_kind": kind}
+    outputs = demo(num_frames=120, **options).setup().get_dataparser_outputs("train")
+    true, noisy = clean_outputs.cameras.camera_to_worlds, outputs.cameras.camera_to_worlds
+    return true.double().numpy(), noisy.double().numpy(), clean_outputs.image_filenames, outputs.image_filenames
+
+
+def assert_set_amounts(degrees: np.ndarray, distances: np.ndarray, true: np.ndarray) -> None:
     assert np.sqrt((degrees**2).mean()) == pytest.approx(1.0, rel=1e-3)
+    length = demo_capture.trajectory_length(true[:, :, 3])
     assert np.sqrt((distances**2).mean()) / length == pytest.approx(0.01, rel=1e-3)
+
+
+def test_pose_noise_moves_the_returned_poses_by_the_set_amounts_and_leaves_the_images_exact():
+    true, noisy, clean_images, images = noisy_demo_poses("smooth")
+    assert images == clean_images, "images stay rendered from the true poses"
+    degrees, distances = demo_capture.pose_errors(noisy, true)
+    assert_set_amounts(degrees, distances, true)
     assert np.abs(np.diff(degrees)).max() < 0.3 * degrees.max(), "smooth along the capture, as drift is"
 
 
 def test_independent_pose_noise_has_the_set_amounts_and_no_correlation_between_neighbouring_frames():
-    clean_outputs = demo(num_frames=120).setup().get_dataparser_outputs("train")
-    options = {"pose_noise_degrees": 1.0, "pose_noise_translation": 0.01}
-    outputs = demo(num_frames=120, pose_noise_kind="independent", **options).setup().get_dataparser_outputs("train")
-    true, noisy = clean_outputs.cameras.camera_to_worlds.double().numpy(), outputs.cameras.camera_to_worlds.double()
-    degrees, distances = demo_capture.pose_errors(noisy.numpy(), true)
-    assert np.sqrt((degrees**2).mean()) == pytest.approx(1.0, rel=1e-3)
-    assert np.sqrt((distances**2).mean()) / demo_capture.trajectory_length(true[:, :, 3]) == pytest.approx(
-        0.01, rel=1e-3
-    )
-    shifts = noisy.numpy()[:, :, 3] - true[:, :, 3]
+    true, noisy, _, _ = noisy_demo_poses("independent")
+    degrees, distances = demo_capture.pose_errors(noisy, true)
+    assert_set_amounts(degrees, distances, true)
+    shifts = noisy[:, :, 3] - true[:, :, 3]
     neighbours = np.corrcoef(shifts[:-1].ravel(), shifts[1:].ravel())[0, 1]
     assert abs(neighbours) < 0.3, "each instant's error is drawn on its own, as when each image is registered alone"
 
