@@ -1,5 +1,6 @@
-"""--pipeline.lr-decay-per-task, --pipeline.lr-decay-start and --pipeline.pose-lr-decay-per-task: learning rates fall
-over (the end of) each task's budget and restart at the next task."""
+"""--pipeline.lr-decay-per-task, --pipeline.lr-decay-start, --pipeline.pose-lr-decay-per-task and
+--pipeline.pose-refinement-start: learning rates fall over (the end of) each task's budget and restart at the next
+task."""
 
 from __future__ import annotations
 
@@ -71,6 +72,15 @@ def test_pose_corrections_learning_rate_decays_on_its_own(run_dir):
     assert all(values == [1.0] * 8 for values in factors.values()), "the others as --pipeline.lr-decay-per-task says"
 
 
+def test_pose_corrections_wait_for_the_refinement_start_then_fall_over_the_rest_of_the_task(run_dir):
+    config = tiny_config(run_dir, demo_parser(), num_tasks=2, iterations_per_task=4)
+    config.pipeline.model.camera_optimizer = CameraOptimizerConfig(mode="SO3xR3")
+    config.pipeline.lr_decay_per_task, config.pipeline.pose_refinement_start = 1.0, 0.5
+    factors = factors_over_two_tasks(config)
+    assert factors.pop("camera_opt") == pytest.approx([0.0, 0.0, 1.0, 0.1**0.5] * 2)
+    assert all(values == [1.0] * 8 for values in factors.values()), "the field learns from each task's start"
+
+
 def test_a_decay_outside_0_1_is_a_one_line_error(run_dir):
     config = tiny_config(run_dir, demo_parser())
     config.pipeline.lr_decay_per_task = 0.0
@@ -78,8 +88,10 @@ def test_a_decay_outside_0_1_is_a_one_line_error(run_dir):
         config.pipeline.setup(device="cpu")
 
 
-def test_a_decay_start_outside_0_1_is_a_one_line_error(run_dir):
+@pytest.mark.parametrize("option", ["lr_decay_start", "pose_refinement_start"])
+def test_a_start_outside_0_1_is_a_one_line_error(run_dir, option):
     config = tiny_config(run_dir, demo_parser())
-    config.pipeline.lr_decay_start = 1.0
-    with pytest.raises(ContinualConfigError, match=r"--pipeline.lr-decay-start must be in \[0, 1\), got 1.0"):
+    setattr(config.pipeline, option, 1.0)
+    flag = "--pipeline." + option.replace("_", "-")
+    with pytest.raises(ContinualConfigError, match=rf"{flag} must be in \[0, 1\), got 1.0"):
         config.pipeline.setup(device="cpu")

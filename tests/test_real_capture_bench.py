@@ -12,6 +12,7 @@ from PIL import Image
 
 from continual_nerf.bench.real_capture import (
     FEATURES,
+    PIPELINE_OPTIONS,
     TRUE_EXPOSURE,
     RealCaptureBenchmark,
     fitted_onto,
@@ -72,12 +73,15 @@ def test_every_run_trains_with_the_chosen_seed(tmp_path):
 
 
 @pytest.mark.parametrize("feature", list(FEATURES))
-def test_every_feature_sets_model_options_the_run_validates(tmp_path, feature):
+def test_every_feature_sets_model_and_pipeline_options_the_run_validates(tmp_path, feature):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
     config = bench.config(bench.demo("room", "clean"), feature, tmp_path / "run")
     config.pipeline.validate()
     model = config.pipeline.model
     assert all(getattr(model, option) == value for option, value in FEATURES[feature].items())
+    pipeline = PIPELINE_OPTIONS.get(feature, {})
+    assert all(getattr(config.pipeline, option) == value for option, value in pipeline.items())
+    assert config.pipeline.pose_refinement_start == pipeline.get("pose_refinement_start", 0.0), "others: the default"
 
 
 def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_with(tmp_path, single_thread):

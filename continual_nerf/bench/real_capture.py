@@ -80,9 +80,12 @@ FEATURES: Dict[str, Dict[str, Any]] = {
         "appearance_codes": "image",
     },
     "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
+    "pose refinement from mid-task": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
     TRUE_EXPOSURE: TRANSFORMS_NOT_FITTED,  # and held at the true gains (train_at_true_exposure)
 }
 """continual-ngp's model options of each feature."""
+PIPELINE_OPTIONS: Dict[str, Dict[str, Any]] = {"pose refinement from mid-task": {"pose_refinement_start": 0.5}}
+"""continual-ngp's pipeline options of the features that have some."""
 
 RUNS: Dict[str, List[Tuple[str, str]]] = {
     "room": [
@@ -90,6 +93,7 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("clean", "codes per image"),
         ("clean", "colour transform per image"),
         ("clean", "pose refinement"),
+        ("clean", "pose refinement from mid-task"),
         ("exposure +-30 %", "off"),
         ("exposure +-30 %", "codes per image"),
         ("exposure +-30 %", "codes per camera and task"),
@@ -100,8 +104,10 @@ RUNS: Dict[str, List[Tuple[str, str]]] = {
         ("exposure +-30 %", "codes and colour transform per image"),
         ("poses off 1 deg, 1 %", "off"),
         ("poses off 1 deg, 1 %", "pose refinement"),
+        ("poses off 1 deg, 1 %", "pose refinement from mid-task"),
         ("poses off 1 deg, 1 %, independent", "off"),
         ("poses off 1 deg, 1 %, independent", "pose refinement"),
+        ("poses off 1 deg, 1 %, independent", "pose refinement from mid-task"),
     ],
     "street": [
         ("clean", "off"),
@@ -277,6 +283,7 @@ class RealCaptureBenchmark(DemoBenchmark):
         config.save_only_latest_checkpoint = True
         config.machine.seed = self.seed
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **FEATURES[feature])
+        config.pipeline = dataclasses.replace(config.pipeline, **PIPELINE_OPTIONS.get(feature, {}))
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
             config.optimizers = {
                 **config.optimizers,

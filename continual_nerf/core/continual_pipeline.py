@@ -58,6 +58,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     pose_lr_decay_per_task: float = 0.1
     """Factor the pose corrections' learning rate (--pipeline.model.camera-optimizer.mode) falls to over each task's
     budget instead: a task's frames refine anew, from nerfacto's 1e-3 down to its final 1e-4; 1 keeps it constant."""
+    pose_refinement_start: float = 0.0
+    """Share of each task's budget before its frames' pose corrections start to learn (their rate then falls over the
+    rest of the task): the field first learns what the new frames show, so that the corrections do not chase it."""
 
     def validate(self) -> None:
         super().validate()
@@ -65,8 +68,10 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             value = getattr(self, name)
             if not 0 < value <= 1:
                 raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in (0, 1], got {value}")
-        if not 0 <= self.lr_decay_start < 1:
-            raise ContinualConfigError(f"--pipeline.lr-decay-start must be in [0, 1), got {self.lr_decay_start}")
+        for name in ("lr_decay_start", "pose_refinement_start"):
+            value = getattr(self, name)
+            if not 0 <= value < 1:
+                raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in [0, 1), got {value}")
         learns_per_frame = isinstance(self.model, ContinualNGPModelConfig) and self.model.learns_per_frame
         if learns_per_frame and not self.datamanager.frames_known_at_start():
             raise ContinualConfigError(
@@ -189,9 +194,8 @@ class ContinualPipeline(VanillaPipeline):
         assert trainer is not None and optimizers is not None
         before = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION
         decay = [TrainingCallback([before], self._decay_learning_rates, args=[optimizers])]
-        decays = self.config.lr_decay_per_task < 1 or (
-            self.config.pose_lr_decay_per_task < 1 and POSE_GROUP in optimizers.optimizers
-        )
+        pose_schedule = self.config.pose_lr_decay_per_task < 1 or self.config.pose_refinement_start > 0
+        decays = self.config.lr_decay_per_task < 1 or (pose_schedule and POSE_GROUP in optimizers.optimizers)
         return super().get_training_callbacks(training_callback_attributes) + [
             *(decay if decays else []),
             TrainingCallback([before], self._start_clock),
@@ -201,14 +205,15 @@ class ContinualPipeline(VanillaPipeline):
 
     def _decay_learning_rates(self, optimizers: Optimizers, step: int) -> None:
         """Every learning rate at its configured value times lr_decay_per_task ** (progress through the task after
-        lr_decay_start), the pose corrections' times pose_lr_decay_per_task ** (progress through the task)."""
+        lr_decay_start), the pose corrections' 0 before pose_refinement_start, then times pose_lr_decay_per_task **
+        (progress through the rest of the task)."""
         progress = self.budget.progress()
-        start = self.config.lr_decay_start
         for name, optimizer in optimizers.optimizers.items():
             if name == POSE_GROUP:
-                factor = self.config.pose_lr_decay_per_task**progress
+                start = self.config.pose_refinement_start
+                factor = 0.0 if progress < start else _falling(self.config.pose_lr_decay_per_task, progress, start)
             else:
-                factor = self.config.lr_decay_per_task ** (max(progress - start, 0.0) / (1 - start))
+                factor = _falling(self.config.lr_decay_per_task, progress, self.config.lr_decay_start)
             for group in optimizer.param_groups:
                 group.setdefault(BASE_LR_KEY, group["lr"])  # in the optimizer's state: a resumed run keeps it
                 group["lr"] = group[BASE_LR_KEY] * factor
@@ -362,3 +367,8 @@ class ContinualPipeline(VanillaPipeline):
 
 def _format_row(values: List[float]) -> str:
     return "[" + ", ".join(f"{value:.2f}" for value in values) + "] dB"
+
+
+def _falling(factor: float, progress: float, start: float) -> float:
+    """`factor` ** (share of the task after `start` that has passed): 1 until `start`, `factor` at the task's end."""
+    return factor ** (max(progress - start, 0.0) / (1 - start))
