@@ -67,6 +67,8 @@ TRANSFORMS_NOT_FITTED: Dict[str, Any] = {
 TRUE_EXPOSURE = "colour transform at the true exposure, a bound"
 """Not a feature: every frame's transform held at the exposure and white balance the demo recorded it with, what
 learned transforms can at best reach."""
+POSE_REFINEMENT: Dict[str, Any] = {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")}
+"""nerfacto's pose refinement, one correction per training image."""
 FEATURES: Dict[str, Dict[str, Any]] = {
     "off": {},
     "codes per image": {"use_appearance_embedding": True, "appearance_codes": "image"},
@@ -79,8 +81,8 @@ FEATURES: Dict[str, Dict[str, Any]] = {
         "use_color_transform": True,
         "appearance_codes": "image",
     },
-    "pose refinement": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
-    "pose refinement from mid-task": {"camera_optimizer": CameraOptimizerConfig(mode="SO3xR3")},
+    "pose refinement": POSE_REFINEMENT,
+    "pose refinement from mid-task": POSE_REFINEMENT,  # and the pipeline's start (PIPELINE_OPTIONS)
     TRUE_EXPOSURE: TRANSFORMS_NOT_FITTED,  # and held at the true gains (train_at_true_exposure)
 }
 """continual-ngp's model options of each feature."""
