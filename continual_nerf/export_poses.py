@@ -19,6 +19,7 @@ from typing import Any, Dict, List
 import numpy as np
 import torch
 import tyro
+from nerfstudio.cameras.cameras import CameraType
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils.eval_utils import eval_setup
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -26,7 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.per_frame import TRAINING_FRAME, refined_poses
-from continual_nerf.dataparsers.transforms_json import DISTORTION_KEYS
+from continual_nerf.dataparsers.transforms_json import CAMERA_MODEL_OF_TYPE, DISTORTION_KEYS
 from continual_nerf.nerfstudio_compat import without_lpips
 
 
@@ -48,6 +49,7 @@ def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> 
     outputs = datamanager.train_dataparser_outputs
     poses = outputs.transform_poses_to_original_space(trajectory_poses(datamanager, model), camera_convention="opengl")
     cameras = outputs.cameras
+    models = [CAMERA_MODEL_OF_TYPE[CameraType(kind)] for kind in cameras.camera_type.view(-1).tolist()]
     frames: List[Dict[str, Any]] = []
     for index, filename in enumerate(outputs.image_filenames):
         camera_to_world = np.eye(4)
@@ -62,10 +64,16 @@ def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> 
             "w": int(cameras.width[index]),
             "h": int(cameras.height[index]),
         }
+        if len(set(models)) > 1:  # nerfstudio reads the file's camera_model only; continual-nerfstudio a frame's too
+            frame["camera_model"] = models[index]
         if cameras.distortion_params is not None:
-            frame.update(zip(DISTORTION_KEYS, cameras.distortion_params[index].tolist()))
+            distortion = cameras.distortion_params[index].tolist()
+            if len(distortion) == len(DISTORTION_KEYS):
+                frame.update(zip(DISTORTION_KEYS, distortion))
+            else:  # FISHEYE624's 12 parameters
+                frame["distortion_params"] = distortion
         frames.append(frame)
-    return {"camera_model": "OPENCV", "frames": frames}
+    return {"camera_model": models[0], "frames": frames}
 
 
 @dataclass

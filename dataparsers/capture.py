@@ -89,11 +89,14 @@ class CaptureFrames:
     width: np.ndarray
     height: np.ndarray
     distortion: Optional[np.ndarray] = None
-    """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2], or None for undistorted images."""
+    """(N, 6) nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2] ((N, 12) for FISHEYE624), or None for
+    undistorted images."""
     time_group: Optional[np.ndarray] = None
     """(N,) capture instant of each image for multi-camera rigs: images of one instant stay in one task."""
     camera_id: Optional[np.ndarray] = None
     """(N,) which camera of a rig took each image (None: cameras told apart by their intrinsics)."""
+    camera_type: Optional[np.ndarray] = None
+    """(N,) nerfstudio CameraType value of each image (None: every image perspective)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -105,7 +108,7 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group", "camera_id")
+            for name in ("distortion", "time_group", "camera_id", "camera_type")
         }
         return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
 
@@ -215,6 +218,9 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     frames = select_frames(frames, config)
     transform, scale = fit_into_box(frames.camera_to_worlds, config.orientation_method, config.scene_scale)
     distortion = None if frames.distortion is None else torch.from_numpy(frames.distortion).float()
+    camera_type = (
+        CameraType.PERSPECTIVE if frames.camera_type is None else torch.from_numpy(frames.camera_type).long()[:, None]
+    )
     cameras = Cameras(
         camera_to_worlds=fitted_poses(frames.camera_to_worlds, transform, scale),
         fx=torch.from_numpy(frames.fx).float()[:, None],
@@ -224,7 +230,7 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         width=torch.from_numpy(frames.width).long()[:, None],
         height=torch.from_numpy(frames.height).long()[:, None],
         distortion_params=distortion,
-        camera_type=CameraType.PERSPECTIVE,
+        camera_type=camera_type,
     )
     CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order")
     return CaptureOutputs(

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Literal, Optional, Tuple, Type, get_args
 
 import numpy as np
+from nerfstudio.cameras.cameras import CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -46,8 +47,10 @@ COLMAP_PARAMETERS = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "OPENCV_FISHEYE": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
-"""transforms.json names of the parameters of COLMAP's perspective camera models, in COLMAP's order (f: fl_x = fl_y)."""
+"""transforms.json names of the parameters of the COLMAP camera models nerfstudio trains on, in COLMAP's order
+(f: fl_x = fl_y)."""
 
 COLMAP_READERS: Dict[str, Tuple[Callable, Callable]] = {
     ".bin": (colmap.read_cameras_binary, colmap.read_images_binary),
@@ -87,7 +90,9 @@ class ListedFrame:
     intrinsics: np.ndarray
     """fx, fy, cx, cy, width, height."""
     distortion: np.ndarray
-    """nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2]."""
+    """nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2] (12 for FISHEYE624)."""
+    camera_type: CameraType = CameraType.PERSPECTIVE
+    """nerfstudio's camera type of the frame's camera model."""
     timestamp: Any = None
     """The frame's raw `timestamp`/`time` value, None when it has none; parsed only when ordering by time."""
 
@@ -115,7 +120,7 @@ def read_transforms(path: Path) -> List[ListedFrame]:
         name = str(frame["file_path"])
         source = f"{path} frame {name}"
         # a frame's own intrinsics override the file-wide ones
-        intrinsics, distortion = parse_intrinsics({**shared, **frame}, source)
+        intrinsics, distortion, camera_type = parse_intrinsics({**shared, **frame}, source)
         listed.append(
             ListedFrame(
                 name=name,
@@ -123,6 +128,7 @@ def read_transforms(path: Path) -> List[ListedFrame]:
                 camera_to_world=transforms_pose(frame.get("transform_matrix"), source),
                 intrinsics=intrinsics,
                 distortion=distortion,
+                camera_type=camera_type,
                 timestamp=next((frame[key] for key in TIMESTAMP_KEYS if key in frame), None),
             )
         )
@@ -183,7 +189,8 @@ def read_colmap(cameras_file: Path, images_file: Path, images_dir: Path) -> List
                 f"{images_file}: image {image.name} uses camera {image.camera_id}, which {cameras_file} lacks"
             )
         camera_source = f"{cameras_file} camera {image.camera_id}"
-        intrinsics, distortion = parse_intrinsics(colmap_camera_values(cameras[image.camera_id]), camera_source)
+        values = colmap_camera_values(cameras[image.camera_id])
+        intrinsics, distortion, camera_type = parse_intrinsics(values, camera_source)
         listed.append(
             ListedFrame(
                 name=image.name,
@@ -191,6 +198,7 @@ def read_colmap(cameras_file: Path, images_file: Path, images_dir: Path) -> List
                 camera_to_world=colmap_pose(image, f"{images_file} image {image.name}"),
                 intrinsics=intrinsics,
                 distortion=distortion,
+                camera_type=camera_type,
             )
         )
     return listed
@@ -281,9 +289,30 @@ def capture_order(frames: List[ListedFrame], order: str, source: Path) -> np.nda
     return permutation
 
 
-def stack_frames(frames: List[ListedFrame]) -> CaptureFrames:
+def check_fisheye624(frames: List[ListedFrame], source: Path) -> None:
+    """nerfstudio 1.1.5 unprojects every FISHEYE624 ray of a batch with the calibration of its first one, and a
+    training batch draws pixels of many frames: every frame needs the first FISHEYE624 frame's calibration (another
+    model's 6 distortion parameters could not stand beside its 12 either)."""
+    first = next((frame for frame in frames if frame.camera_type == CameraType.FISHEYE624), None)
+    if first is None:
+        return
+    for frame in frames:
+        if calibration(frame) != calibration(first):
+            raise DatasetError(
+                f"{source} frame {frame.name}: a FISHEYE624 capture needs the calibration of {first.name} on every "
+                "frame (nerfstudio unprojects a batch of FISHEYE624 rays with its first ray's)"
+            )
+
+
+def calibration(frame: ListedFrame) -> Tuple[CameraType, List[float], List[float]]:
+    return frame.camera_type, frame.intrinsics.tolist(), frame.distortion.tolist()
+
+
+def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
+    check_fisheye624(frames, source)
     intrinsics = np.stack([frame.intrinsics for frame in frames])
     distortion = np.stack([frame.distortion for frame in frames])
+    camera_type = np.array([frame.camera_type.value for frame in frames])
     return CaptureFrames(
         image_filenames=[frame.image for frame in frames],
         camera_to_worlds=np.stack([frame.camera_to_world for frame in frames]),
@@ -293,8 +322,9 @@ def stack_frames(frames: List[ListedFrame]) -> CaptureFrames:
         cy=intrinsics[:, 3],
         width=intrinsics[:, 4].astype(np.int64),
         height=intrinsics[:, 5].astype(np.int64),
-        # undistorted captures skip nerfstudio's iterative undistortion of every ray
-        distortion=distortion if distortion.any() else None,
+        # undistorted captures skip nerfstudio's iterative undistortion of every ray; FISHEYE624 rays need its parameters
+        distortion=distortion if distortion.any() or CameraType.FISHEYE624.value in camera_type else None,
+        camera_type=camera_type,
     )
 
 
@@ -306,4 +336,4 @@ class OrderedCaptureDataParser(DataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         listed, source = read_listed_frames(self.config)
         permutation = capture_order(listed, self.config.order, source)
-        return capture_outputs(stack_frames([listed[index] for index in permutation]), self.config)
+        return capture_outputs(stack_frames([listed[index] for index in permutation], source), self.config)

@@ -21,16 +21,44 @@ INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 """transforms.json distortion keys, in the order of nerfstudio's distortion_params."""
 
-PERSPECTIVE_MODELS = tuple(name for name, kind in CAMERA_MODEL_TO_TYPE.items() if kind == CameraType.PERSPECTIVE)
-"""Camera models the capture base can train on (it builds perspective cameras)."""
+RAY_GENERATION_ONLY_FOR_WHOLE_IMAGES = (
+    CameraType.OMNIDIRECTIONALSTEREO_L,
+    CameraType.OMNIDIRECTIONALSTEREO_R,
+    CameraType.VR180_L,
+    CameraType.VR180_R,
+)
+"""Camera types nerfstudio 1.1.5 generates rays for only as whole images (rendering); for the single pixels of many
+frames a training batch draws it fails, so their captures cannot train."""
+
+CAMERA_MODELS = tuple(
+    name for name, kind in CAMERA_MODEL_TO_TYPE.items() if kind not in RAY_GENERATION_ONLY_FOR_WHOLE_IMAGES
+)
+"""transforms.json camera models the capture dataparsers train on: nerfstudio's, but for those above."""
+
+CAMERA_MODEL_OF_TYPE = {**{kind: name for name, kind in CAMERA_MODEL_TO_TYPE.items()}, CameraType.PERSPECTIVE: "OPENCV"}
+"""The transforms.json camera model written for each camera type (OPENCV: its keys hold every perspective model's)."""
+
+FISHEYE624_DISTORTION = 12
+"""Distortion parameters of nerfstudio's FISHEYE624 model (6 radial, 2 tangential, 4 thin-prism), given as
+`distortion_params`; every other model takes the 6 of DISTORTION_KEYS."""
 
 
-def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray, np.ndarray]:
-    """Checked intrinsics and distortion from transforms.json-style keys; only perspective camera models are accepted."""
+def camera_type(values: Mapping[str, Any], source: str) -> CameraType:
+    """nerfstudio's camera type of the transforms.json `camera_model` (OPENCV when absent)."""
     model = values.get("camera_model", "OPENCV")
-    if model not in PERSPECTIVE_MODELS:
-        supported = ", ".join(PERSPECTIVE_MODELS)
-        raise DatasetError(f"{source}: camera model {model} is not supported (perspective only: {supported})")
+    if model in CAMERA_MODELS:
+        return CAMERA_MODEL_TO_TYPE[model]
+    if model in CAMERA_MODEL_TO_TYPE:
+        raise DatasetError(
+            f"{source}: camera model {model} cannot train: nerfstudio generates its rays for whole images only "
+            f"(supported: {', '.join(CAMERA_MODELS)})"
+        )
+    raise DatasetError(f"{source}: camera model {model} is not supported (supported: {', '.join(CAMERA_MODELS)})")
+
+
+def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray, np.ndarray, CameraType]:
+    """Checked intrinsics, distortion and camera type from transforms.json-style keys."""
+    kind = camera_type(values, source)
     missing = [key for key in INTRINSIC_KEYS if key not in values]
     if missing:
         raise DatasetError(f"{source}: {', '.join(missing)} missing (set per frame or once for the whole file)")
@@ -41,12 +69,15 @@ def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray
         )
     except (TypeError, ValueError, OverflowError):
         raise DatasetError(f"{source}: intrinsics and distortion must be numbers") from None
-    if distortion.shape != (len(DISTORTION_KEYS),):
+    if kind == CameraType.FISHEYE624:
+        if distortion.shape != (FISHEYE624_DISTORTION,):
+            raise DatasetError(f"{source}: FISHEYE624 needs distortion_params of {FISHEYE624_DISTORTION} numbers")
+    elif distortion.shape != (len(DISTORTION_KEYS),):
         raise DatasetError(f"{source}: distortion_params must hold 6 numbers {list(DISTORTION_KEYS)}")
     if not np.isfinite(distortion).all():
         raise DatasetError(f"{source}: distortion parameters must be finite numbers")
     check_intrinsics(*intrinsics, source=source)
-    return intrinsics, distortion
+    return intrinsics, distortion, kind
 
 
 def transforms_pose(value: Any, source: str) -> np.ndarray:

@@ -8,6 +8,7 @@ from typing import List
 
 import numpy as np
 import pytest
+import torch
 from helpers import (
     HEIGHT,
     NUMBERS,
@@ -22,11 +23,15 @@ from helpers import (
     write_colmap_text,
     write_transforms,
 )
+from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.utils import colmap_parsing_utils as colmap
+from nerfstudio.model_components.ray_generators import RayGenerator
 
+from continual_nerf.core.continual_datamanager import ContinualDataManager, camera_ids
 from continual_nerf.dataparsers import ordered_capture_dataparser as parser_module
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
+from continual_nerf.dataparsers.transforms_json import CAMERA_MODELS, FISHEYE624_DISTORTION
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 
@@ -128,6 +133,102 @@ def test_colmap_binary_model_reads_like_the_text_one(tmp_path):
     assert np.allclose(original_poses(binary), original_poses(text), atol=1e-5)
 
 
+FISHEYE_DISTORTION = {"k1": 0.1, "k2": -0.02, "k3": 0.003, "k4": -0.0004}
+"""OPENCV_FISHEYE's k1..k4, which nerfstudio keeps in the first four slots of distortion_params."""
+
+
+def types_by_name(outputs: DataparserOutputs) -> dict:
+    return dict(zip(names(outputs), (CameraType(kind) for kind in outputs.cameras.camera_type.view(-1).tolist())))
+
+
+def test_camera_models_are_read_per_frame_into_nerfstudios_camera_types(tmp_path):
+    frames = numbered_frames(arc_poses())
+    frames[1]["camera_model"] = "EQUIRECTANGULAR"  # frame_4
+    frames[2].update({"camera_model": "PINHOLE", "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0})  # frame_6
+    folder = write_transforms(tmp_path / "fisheye", frames, camera_model="OPENCV_FISHEYE", **FISHEYE_DISTORTION)
+    outputs = parse(folder)
+    special = {"frame_4.png": CameraType.EQUIRECTANGULAR, "frame_6.png": CameraType.PERSPECTIVE}
+    assert types_by_name(outputs) == {name: special.get(name, CameraType.FISHEYE) for name in names(outputs)}
+    distortion = outputs.cameras.distortion_params
+    assert distortion is not None
+    fisheye = [name not in special for name in names(outputs)]
+    assert np.allclose(distortion[fisheye].numpy(), [*FISHEYE_DISTORTION.values(), 0.0, 0.0])
+    assert np.allclose(distortion[names(outputs).index("frame_6.png")].numpy(), 0.0)
+    cameras = camera_ids(outputs)
+    assert len(set(cameras[fisheye].tolist())) == 1 and len(set(cameras.tolist())) == 3, "one camera per type"
+
+
+def test_colmap_fisheye_cameras_are_fisheye(tmp_path):
+    model = write_colmap_text(tmp_path / "scene")
+    fisheye = " ".join(str(value) for value in FISHEYE_DISTORTION.values())
+    (model / "cameras.txt").write_text(
+        f"1 OPENCV_FISHEYE {WIDTH} {HEIGHT} 30 31 16 12 {fisheye}\n2 PINHOLE {WIDTH} {HEIGHT} 30 31 16 12\n"
+    )
+    outputs = parse(model)
+    camera_1 = slice(0, None, 2)  # even frames
+    assert outputs.cameras.camera_type[camera_1].flatten().tolist() == [CameraType.FISHEYE.value] * 5
+    assert outputs.cameras.camera_type[1::2].flatten().tolist() == [CameraType.PERSPECTIVE.value] * 5
+    distortion = outputs.cameras.distortion_params
+    assert distortion is not None
+    assert np.allclose(distortion[camera_1].numpy(), [*FISHEYE_DISTORTION.values(), 0.0, 0.0])
+
+
+def test_fisheye624_takes_twelve_parameters_and_one_calibration(numbered):
+    edit_transforms(
+        numbered, **{f"frame_{n}": {"camera_model": "FISHEYE624", "distortion_params": [0.0] * 12} for n in NUMBERS}
+    )
+    outputs = parse(numbered)
+    assert set(types_by_name(outputs).values()) == {CameraType.FISHEYE624}
+    distortion = outputs.cameras.distortion_params
+    assert distortion is not None and distortion.shape == (10, 12), "kept when zero: FISHEYE624 rays need it"
+    edit_transforms(numbered, frame_8={"distortion_params": [0.01] * 12})
+    assert error_of(numbered) == (
+        f"{numbered / 'transforms.json'} frame images/frame_8.png: a FISHEYE624 capture needs the calibration of "
+        "images/frame_2.png on every frame (nerfstudio unprojects a batch of FISHEYE624 rays with its first ray's)"
+    )
+
+
+@pytest.mark.parametrize("model", CAMERA_MODEL_TO_TYPE)
+def test_the_models_accepted_are_those_nerfstudio_generates_rays_of_single_pixels_for(model):
+    kind = CAMERA_MODEL_TO_TYPE[model]
+    parameters = FISHEYE624_DISTORTION if kind == CameraType.FISHEYE624 else 6
+    cameras = Cameras(
+        camera_to_worlds=torch.eye(4)[:3].repeat(2, 1, 1),
+        fx=30.0,
+        fy=31.0,
+        cx=16.0,
+        cy=12.0,
+        width=WIDTH,
+        height=HEIGHT,
+        distortion_params=torch.full((2, parameters), 0.01),
+        camera_type=kind,
+    )
+    try:  # pixels of two frames, as a training batch draws them
+        rays = RayGenerator(cameras)(torch.tensor([[0, 3, 5], [1, 10, 20], [0, 20, 30]]))
+        generated = bool(torch.isfinite(rays.directions).all())
+    except (IndexError, RuntimeError):
+        generated = False
+    assert generated == (model in CAMERA_MODELS)
+
+
+def test_a_fisheye_capture_trains_on_fisheye_rays(tmp_path, run_dir):
+    folder = write_transforms(tmp_path / "fisheye", numbered_frames(arc_poses()), camera_model="OPENCV_FISHEYE")
+    parser = OrderedCaptureDataParserConfig(data=folder)
+    manager = tiny_config(run_dir, parser, num_tasks=2).pipeline.datamanager.setup(device="cpu")
+    assert isinstance(manager, ContinualDataManager)
+    rays, batch = manager.next_train(0)
+    cameras = manager.train_dataset.cameras
+    frame, y, x = batch["indices"].unbind(-1)
+    # undistorted, nerfstudio's fisheye turns a ray from the optical axis by its normalised radius (a pinhole: atan)
+    radius = torch.hypot(
+        (x + 0.5 - cameras.cx[frame, 0]) / cameras.fx[frame, 0], (y + 0.5 - cameras.cy[frame, 0]) / cameras.fy[frame, 0]
+    )
+    axis = -cameras.camera_to_worlds[frame, :, 2]
+    angle = torch.atan2(torch.linalg.cross(rays.directions, axis).norm(dim=-1), (rays.directions * axis).sum(-1))
+    assert torch.allclose(angle, radius, atol=1e-4)
+    assert float((radius - torch.atan(radius)).max()) > 0.05, "the batch holds rays a pinhole would turn less"
+
+
 def error_of(data: Path, error: type = DatasetError, **options) -> str:
     """The one-line message parsing `data` fails with."""
     with pytest.raises(error) as raised:
@@ -182,8 +283,16 @@ def test_order_timestamp_needs_a_number_on_every_frame(numbered):
 
 def test_bad_intrinsics_and_camera_models(numbered):
     frame_4 = f"{numbered / 'transforms.json'} frame images/frame_4.png"
-    edit_transforms(numbered, frame_4={"camera_model": "OPENCV_FISHEYE"})
-    assert error_of(numbered).startswith(f"{frame_4}: camera model OPENCV_FISHEYE is not supported (perspective only: ")
+    edit_transforms(numbered, frame_4={"camera_model": "KANNALA"})
+    assert error_of(numbered).startswith(
+        f"{frame_4}: camera model KANNALA is not supported (supported: SIMPLE_PINHOLE, "
+    )
+    for model in ("VR180_L", "OMNIDIRECTIONALSTEREO_R"):
+        edit_transforms(numbered, frame_4={"camera_model": model})
+        expected = f"{frame_4}: camera model {model} cannot train: nerfstudio generates its rays for whole images only"
+        assert error_of(numbered).startswith(expected)
+    edit_transforms(numbered, frame_4={"camera_model": "FISHEYE624", "distortion_params": [0.1] * 6})
+    assert error_of(numbered) == f"{frame_4}: FISHEYE624 needs distortion_params of 12 numbers"
     edit_transforms(numbered, frame_4={"camera_model": "OPENCV", "distortion_params": [0.1, 0.2]})
     assert error_of(numbered).startswith(f"{frame_4}: distortion_params must hold 6 numbers [")
     meta = edit_transforms(numbered, frame_4={"distortion_params": None})
@@ -229,11 +338,11 @@ def test_bad_colmap_models(tmp_path):
     model = write_colmap_text(tmp_path / "no_camera", ["1 1 0 0 0 0 0 0 7 000002.png"])
     expected = f"{model / 'images.txt'}: image 000002.png uses camera 7, which {model / 'cameras.txt'} lacks"
     assert error_of(model) == expected
-    model = write_colmap_text(tmp_path / "fisheye")
-    fisheye = f"1 OPENCV_FISHEYE {WIDTH} {HEIGHT} 30 31 16 12 0 0 0 0\n2 PINHOLE {WIDTH} {HEIGHT} 30 31 16 12\n"
-    (model / "cameras.txt").write_text(fisheye)
+    model = write_colmap_text(tmp_path / "fov")
+    fov = f"1 FOV {WIDTH} {HEIGHT} 30 31 16 12 0.1\n2 PINHOLE {WIDTH} {HEIGHT} 30 31 16 12\n"
+    (model / "cameras.txt").write_text(fov)
     message = error_of(model)
-    assert message.startswith(f"{model / 'cameras.txt'} camera 1: camera model OPENCV_FISHEYE is not supported")
+    assert message.startswith(f"{model / 'cameras.txt'} camera 1: camera model FOV is not supported")
     colmap.write_images_binary(colmap.read_images_text(model / "images.txt"), model / "images.bin")
     colmap.write_cameras_binary(colmap.read_cameras_text(model / "cameras.txt"), model / "cameras.bin")
     (model / "images.bin").write_bytes((model / "images.bin").read_bytes()[:100])

@@ -150,11 +150,14 @@ def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> Dataparser
 
 
 def camera_ids(outputs: DataparserOutputs) -> np.ndarray:
-    """Which camera took each frame: the dataparser's `camera_id`, else frames with the same intrinsics are one camera."""
+    """Which camera took each frame: the dataparser's `camera_id`, else frames with the same intrinsics (and camera
+    type) are one camera."""
     if "camera_id" in outputs.metadata:
         return np.asarray(outputs.metadata["camera_id"], dtype=np.int64)
     cameras = outputs.cameras
-    intrinsics = torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width, cameras.height], dim=-1)
+    intrinsics = torch.cat(
+        [cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width, cameras.height, cameras.camera_type], dim=-1
+    )
     return np.unique(intrinsics.double().numpy(), axis=0, return_inverse=True)[1].reshape(-1)
 
 

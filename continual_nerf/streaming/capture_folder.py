@@ -129,7 +129,10 @@ def read_frame(path: Path, folder: Path) -> StreamFrame:
     if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
         raise DatasetError(f"{path}: a frame needs a `file_path` string (nerfstudio's transforms.json frame format)")
     source = str(path)
-    intrinsics, distortion = parse_intrinsics(frame, source)
+    intrinsics, distortion, kind = parse_intrinsics(frame, source)
+    if kind != CameraType.PERSPECTIVE:  # the stream's datasets grow task by task as perspective cameras
+        model = frame.get("camera_model")
+        raise DatasetError(f"{source}: camera model {model} is not supported here (a capture folder: perspective only)")
     camera_to_world = transforms_pose(frame.get("transform_matrix"), source)
     try:
         image = real_path_inside(folder / frame["file_path"], folder)  # the file checked is the file trained on
