@@ -45,7 +45,7 @@ def trajectory_poses(datamanager: ContinualDataManager, model: NerfactoModel) ->
 
 
 def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> Dict[str, Any]:
-    """nerfstudio's transforms.json of the trajectory: per frame its image, refined pose and intrinsics."""
+    """nerfstudio's transforms.json of the trajectory: per frame its image, refined pose, intrinsics and mask."""
     outputs = datamanager.train_dataparser_outputs
     poses = outputs.transform_poses_to_original_space(trajectory_poses(datamanager, model), camera_convention="opengl")
     cameras = outputs.cameras
@@ -72,6 +72,8 @@ def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> 
                 frame.update(zip(DISTORTION_KEYS, distortion))
             else:  # FISHEYE624's 12 parameters
                 frame["distortion_params"] = distortion
+        if outputs.mask_filenames is not None:
+            frame["mask_path"] = str(Path(outputs.mask_filenames[index]).resolve())
         frames.append(frame)
     return {"camera_model": models[0], "frames": frames}
 

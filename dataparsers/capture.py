@@ -97,6 +97,8 @@ class CaptureFrames:
     """(N,) which camera of a rig took each image (None: cameras told apart by their intrinsics)."""
     camera_type: Optional[np.ndarray] = None
     """(N,) nerfstudio CameraType value of each image (None: every image perspective)."""
+    mask_filenames: Optional[List[Path]] = None
+    """Per image a single-channel mask, 0 where its pixels must not train (None: every pixel trains)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -110,7 +112,10 @@ class CaptureFrames:
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
             for name in ("distortion", "time_group", "camera_id", "camera_type")
         }
-        return replace(self, image_filenames=[self.image_filenames[i] for i in keep], **optional, **picked)
+        masks = None if self.mask_filenames is None else [self.mask_filenames[i] for i in keep]
+        return replace(
+            self, image_filenames=[self.image_filenames[i] for i in keep], mask_filenames=masks, **optional, **picked
+        )
 
 
 def check_pose(matrix: np.ndarray, source: str) -> None:
@@ -232,9 +237,11 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         distortion_params=distortion,
         camera_type=camera_type,
     )
-    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order")
+    masked = "" if frames.mask_filenames is None else ", each with its mask"
+    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{masked}")
     return CaptureOutputs(
         image_filenames=frames.image_filenames,
+        mask_filenames=frames.mask_filenames,
         cameras=cameras,
         scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]) * 1.5),
         dataparser_transform=torch.from_numpy(transform),

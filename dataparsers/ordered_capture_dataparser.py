@@ -93,14 +93,26 @@ class ListedFrame:
     """nerfstudio distortion parameters [k1, k2, k3, k4, p1, p2] (12 for FISHEYE624)."""
     camera_type: CameraType = CameraType.PERSPECTIVE
     """nerfstudio's camera type of the frame's camera model."""
+    mask: Optional[Path] = None
+    """The frame's `mask_path` (0: the pixel does not train), None when it has none."""
     timestamp: Any = None
     """The frame's raw `timestamp`/`time` value, None when it has none; parsed only when ordering by time."""
 
 
-def existing_image(path: Path, listed_in: Path) -> Path:
+def existing_file(path: Path, listed_in: Path, what: str = "image") -> Path:
     if not path.is_file():
-        raise DatasetError(f"{path}: image listed in {listed_in} does not exist")
+        raise DatasetError(f"{path}: {what} listed in {listed_in} does not exist")
     return path
+
+
+def check_masks_everywhere_or_nowhere(frames: List[ListedFrame], source: Path) -> None:
+    """nerfstudio's rule: a mask for every frame or for none (a frame without one would train on every pixel)."""
+    unmasked = [frame.name for frame in frames if frame.mask is None]
+    if 0 < len(unmasked) < len(frames):
+        raise DatasetError(
+            f"{source} frame {unmasked[0]}: has no mask_path while other frames have one (give every frame a mask, "
+            "or none)"
+        )
 
 
 def read_transforms(path: Path) -> List[ListedFrame]:
@@ -121,17 +133,20 @@ def read_transforms(path: Path) -> List[ListedFrame]:
         source = f"{path} frame {name}"
         # a frame's own intrinsics override the file-wide ones
         intrinsics, distortion, camera_type = parse_intrinsics({**shared, **frame}, source)
+        mask = frame.get("mask_path")
         listed.append(
             ListedFrame(
                 name=name,
-                image=existing_image(path.parent / name, path),
+                image=existing_file(path.parent / name, path),
                 camera_to_world=transforms_pose(frame.get("transform_matrix"), source),
                 intrinsics=intrinsics,
                 distortion=distortion,
                 camera_type=camera_type,
+                mask=None if mask is None else existing_file(path.parent / str(mask), path, "mask"),
                 timestamp=next((frame[key] for key in TIMESTAMP_KEYS if key in frame), None),
             )
         )
+    check_masks_everywhere_or_nowhere(listed, path)
     return listed
 
 
@@ -194,7 +209,7 @@ def read_colmap(cameras_file: Path, images_file: Path, images_dir: Path) -> List
         listed.append(
             ListedFrame(
                 name=image.name,
-                image=existing_image(images_dir / image.name, images_file),
+                image=existing_file(images_dir / image.name, images_file),
                 camera_to_world=colmap_pose(image, f"{images_file} image {image.name}"),
                 intrinsics=intrinsics,
                 distortion=distortion,
@@ -313,6 +328,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
     intrinsics = np.stack([frame.intrinsics for frame in frames])
     distortion = np.stack([frame.distortion for frame in frames])
     camera_type = np.array([frame.camera_type.value for frame in frames])
+    masks = [frame.mask for frame in frames if frame.mask is not None]  # every frame's or none (read_transforms)
     return CaptureFrames(
         image_filenames=[frame.image for frame in frames],
         camera_to_worlds=np.stack([frame.camera_to_world for frame in frames]),
@@ -325,6 +341,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
         # undistorted captures skip nerfstudio's iterative undistortion of every ray; FISHEYE624 rays need its parameters
         distortion=distortion if distortion.any() or CameraType.FISHEYE624.value in camera_type else None,
         camera_type=camera_type,
+        mask_filenames=masks or None,
     )
 
 

@@ -253,6 +253,39 @@ def edit_transforms(folder: Path, **frame_changes: Dict) -> Dict:
     return meta
 
 
+ALL_MASKED = 6
+"""frame_6 (a training frame of task 1 when the capture is cut into 2 tasks) is masked out everywhere."""
+
+
+def mask_of(number: int) -> np.ndarray:
+    """frame_<number>'s mask, 32x24: 255 where its pixels train; a band on the left and a block differ per frame."""
+    mask = np.full((HEIGHT, WIDTH), 255, dtype=np.uint8)
+    mask[:, : 4 + number % 7] = 0
+    mask[number % 5 : number % 5 + 6, 20:28] = 0
+    if number == ALL_MASKED:
+        mask[:] = 0
+    return mask
+
+
+def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
+    """The mask as nerfstudio's mask reader downscales it (nearest)."""
+    size = (mask.shape[1] // factor, mask.shape[0] // factor)
+    return np.array(Image.fromarray(mask).resize(size, resample=Image.Resampling.NEAREST))
+
+
+def masked_capture(folder: Path, factor: int = 1, **shared) -> Path:
+    """write_transforms' 10-frame capture (`shared`: file-wide keys) with a mask per frame under masks/ (mask_of), each
+    `factor` times smaller than its image."""
+    frames = numbered_frames(arc_poses())
+    for frame in frames:
+        frame["mask_path"] = frame["file_path"].replace("images/", "masks/")
+    capture = write_transforms(folder, frames, **shared)
+    (capture / "masks").mkdir()
+    for number in NUMBERS:
+        Image.fromarray(shrink(mask_of(number), factor)).save(capture / "masks" / f"frame_{number}.png")
+    return capture
+
+
 def colmap_line(image_id: int, camera_to_world: np.ndarray, camera_id: int, name: str) -> str:
     """An images.txt pose line: OpenCV world-to-camera as COLMAP's scalar-first quaternion and translation."""
     world_to_camera = np.linalg.inv(camera_to_world @ OPENCV_TO_OPENGL)

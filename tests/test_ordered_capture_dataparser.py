@@ -16,6 +16,7 @@ from helpers import (
     WIDTH,
     arc_poses,
     edit_transforms,
+    masked_capture,
     numbered_frames,
     original_poses,
     tiny_config,
@@ -33,6 +34,7 @@ from continual_nerf.dataparsers import ordered_capture_dataparser as parser_modu
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.transforms_json import CAMERA_MODELS, FISHEYE624_DISTORTION
 from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.export_poses import transforms_json
 
 
 def parse(data: Path, **options) -> DataparserOutputs:
@@ -372,3 +374,21 @@ def test_short_continual_run_on_a_transforms_json_capture(numbered, run_dir):
     frames = datamanager.train_dataset.image_filenames + datamanager.eval_dataset.image_filenames
     assert sorted(path.name for path in frames) == sorted(f"frame_{number}.png" for number in NUMBERS)
     assert (trainer.base_dir / "dataparser_transforms.json").is_file()
+
+
+@pytest.mark.slow
+def test_short_continual_run_on_a_fisheye_capture_with_masks(tmp_path, run_dir, single_thread):
+    capture = masked_capture(tmp_path / "capture", camera_model="OPENCV_FISHEYE", **FISHEYE_DISTORTION)
+    config = tiny_config(run_dir, OrderedCaptureDataParserConfig(data=capture), num_tasks=2, iterations_per_task=2)
+    pipeline = train(config).pipeline
+    datamanager = pipeline.datamanager
+    assert len(pipeline.accuracy.psnr) == 2 and np.isfinite(pipeline.accuracy.psnr[-1]).all(), "trained and evaluated"
+    assert bool((datamanager.eval_dataset.cameras.camera_type == CameraType.FISHEYE.value).all())
+    exported = transforms_json(datamanager, pipeline.model)  # what continual-nerf-export-poses writes
+    assert exported["camera_model"] == "OPENCV_FISHEYE"
+    (tmp_path / "exported").mkdir()
+    (tmp_path / "exported" / "transforms.json").write_text(json.dumps(exported))
+    reread = parse(tmp_path / "exported")
+    assert set(types_by_name(reread).values()) == {CameraType.FISHEYE}
+    assert reread.mask_filenames is not None
+    assert [path.name for path in reread.mask_filenames] == [f"frame_{number}.png" for number in NUMBERS]

@@ -59,14 +59,14 @@ def render_open_task_pixels(
     model: ContinualNGPModel, datamanager: ContinualDataManager
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Colour the model renders (through each frame's colour transform) and records at `PIXELS_PER_FRAME` pixels of
-    every open-task frame, and the frame of each; the pixels are drawn with their own generator, so that the run's
-    random stream, and with it an exact resume, stays as without the fit."""
+    every open-task frame (on average; none a mask leaves out), and the frame of each; the pixels are drawn with their
+    own generator, so that the run's random stream, and with it an exact resume, stays as without the fit."""
     dataset = datamanager.train_dataset
     task = dataset.open_task
     assert task is not None and dataset.task_pixels is not None, "the open task's pixels are read"
     start, end = dataset.open_task_pixel_range()
     generator = torch.Generator().manual_seed(task)
-    flat = torch.randint(start, end, (PIXELS_PER_FRAME * len(dataset.frames_of_task(task)),), generator=generator)
+    flat = dataset.draw_pixels(start, end, PIXELS_PER_FRAME * len(dataset.frames_of_task(task)), generator=generator)
     recorded = dataset.task_pixels[flat - start].float()
     indices = datamanager.ray_indices(flat)
     was_training = model.training

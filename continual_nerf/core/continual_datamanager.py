@@ -25,7 +25,12 @@ from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.model_components.ray_generators import RayGenerator
 
-from continual_nerf.core.continual_dataset import ContinualDataset, TestFrameDataset, check_image_headers
+from continual_nerf.core.continual_dataset import (
+    ContinualDataset,
+    TestFrameDataset,
+    check_image_headers,
+    check_mask_headers,
+)
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_into_tasks
@@ -237,7 +242,10 @@ class ContinualDataManager(VanillaDataManager):
         """The test frames; each is rendered with the appearance code and pose correction of the training frame of
         its task and camera nearest to it in time (its cameras' TRAINING_FRAME metadata reaches the rays)."""
         outputs = self.train_dataparser_outputs
-        test_outputs = subset_outputs(outputs, self.task_split.all_test_frames())
+        # evaluation measures whole frames, masked pixels too, as nerfstudio's nerfacto does
+        test_outputs = dataclasses.replace(
+            subset_outputs(outputs, self.task_split.all_test_frames()), mask_filenames=None
+        )
         nearest = nearest_train_frames(self.task_split, capture_instants(outputs), camera_ids(outputs))
         test_outputs.cameras.metadata = {TRAINING_FRAME: torch.from_numpy(nearest)[:, None]}
         return TestFrameDataset(test_outputs, scale_factor=self._image_scale())
@@ -288,15 +296,16 @@ class ContinualDataManager(VanillaDataManager):
 
     def sample_pixels(self, num_rays: int) -> torch.Tensor:
         """Flat pixel numbers: the open task's first, then the earlier tasks' (uniformly over their pixels), in the
-        share --current-task-fraction sets; the open task's alone without replay."""
+        share --current-task-fraction sets; the open task's alone without replay. Pixels masked out are never drawn."""
         start, end = self.train_dataset.open_task_pixel_range()
+        draw = self.train_dataset.draw_pixels
         if not (self.config.replay and self.released_task > 0):
-            return torch.randint(start, end, (num_rays,))
+            return draw(start, end, num_rays)
         share = self.open_task_share()
         if share is None:
-            return torch.randint(0, end, (num_rays,))
+            return draw(0, end, num_rays)
         num_open = round(num_rays * share)
-        return torch.cat([torch.randint(start, end, (num_open,)), torch.randint(0, start, (num_rays - num_open,))])
+        return torch.cat([draw(start, end, num_open), draw(0, start, num_rays - num_open)])
 
     def ray_indices(self, flat: torch.Tensor) -> torch.Tensor:
         """(camera, y, x) of flat pixel numbers."""
@@ -311,6 +320,8 @@ class ContinualDataManager(VanillaDataManager):
         later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
         check_image_headers(self.train_dataset, later_tasks.tolist())
         check_image_headers(self.eval_dataset, range(len(self.eval_dataset)))
+        if self.train_dataset.mask_filenames is not None:  # closed tasks' too: a resumed run reads them again
+            check_mask_headers(self.train_dataset, range(len(self.train_dataset)))
         self.train_dataset.open(self.data_task)
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
@@ -343,10 +354,15 @@ class ContinualDataManager(VanillaDataManager):
         is_replay[chosen] = False
 
     def open_task_pixels(self) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Flat pixel numbers and colours of the open task (what a replay buffer keeps a subset of at its end)."""
+        """Flat pixel numbers and colours of the open task's pixels that train, unmasked (what a replay buffer keeps a
+        subset of at its end)."""
         start, end = self.train_dataset.open_task_pixel_range()
-        assert self.train_dataset.task_pixels is not None
-        return torch.arange(start, end), self.train_dataset.task_pixels
+        pixels, valid_pixels = self.train_dataset.task_pixels, self.train_dataset.valid_pixels
+        assert pixels is not None
+        if valid_pixels is None:
+            return torch.arange(start, end), pixels
+        valid = valid_pixels.contains(torch.arange(start, end))
+        return torch.arange(start, end)[valid], pixels[valid]
 
     def total_train_pixels(self) -> int:
         return int(self.train_dataset.pixel_offsets[-1])

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Iterable, Optional, Tuple
+from typing import Iterable, List, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -11,14 +12,20 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.utils.data_utils import get_image_mask_tensor_from_path
 from PIL import Image, UnidentifiedImageError
+from torch import Tensor
 
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
+from continual_nerf.core.valid_pixels import ValidPixels
 from continual_nerf.errors import DatasetError, first_line
 from continual_nerf.untrusted_files import check_regular
 
 IMAGE_MODES = ("L", "RGB", "RGBA")
 """PIL modes of the images nerfstudio's InputDataset decodes correctly."""
+
+MASK_MODES = ("1", "L")
+"""PIL modes of the masks read: one channel, 1-bit or 8-bit."""
 
 
 class ClosedTaskError(PermissionError):
@@ -31,7 +38,8 @@ class ContinualDataset(InputDataset):
     Camera rays (poses and intrinsics) of every frame stay available: the continual setting allows
     rays of past tasks. Pixels of a task are loaded when it opens and dropped when it closes; reading
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
-    The task and camera of every frame are in its metadata, which nerfstudio hands to the model.
+    The task and camera of every frame are in its metadata, which nerfstudio hands to the model. Masks, when the
+    capture has them, decide which pixels `draw_pixels` may draw, for the open task and for replay alike.
     """
 
     def __init__(
@@ -42,7 +50,11 @@ class ContinualDataset(InputDataset):
         for_training: bool = True,
         camera_of_frame: Optional[np.ndarray] = None,
     ):
-        super().__init__(dataparser_outputs, scale_factor=scale_factor)
+        # nerfstudio's InputDataset would read each mask into its frame's batch, at the image's full size only; masks
+        # are read here instead (read_mask), into the record of the pixels training may draw
+        super().__init__(dataclasses.replace(dataparser_outputs, mask_filenames=None), scale_factor=scale_factor)
+        self.mask_filenames: Optional[List[Path]] = dataparser_outputs.mask_filenames
+        """Per frame a mask, 0 where its pixels never train (None: every pixel trains)."""
         self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
         self.metadata[FRAME_TASK] = self.task_of_frame
         cameras = np.zeros_like(task_of_frame) if camera_of_frame is None else camera_of_frame
@@ -55,6 +67,8 @@ class ContinualDataset(InputDataset):
         pixel_counts = (self.cameras.width * self.cameras.height).view(-1).long()
         self.pixel_offsets = torch.cat([torch.zeros(1, dtype=torch.long), pixel_counts.cumsum(0)])
         """Start of every frame in the flat pixel numbering of all training frames; last entry is the total."""
+        self.valid_pixels = None if self.mask_filenames is None else ValidPixels(self.pixel_offsets)
+        """Which pixels of the released tasks their masks let train; None without masks."""
 
     def frames_of_task(self, task: int) -> torch.Tensor:
         return torch.nonzero(self.task_of_frame == task).view(-1)
@@ -65,6 +79,30 @@ class ContinualDataset(InputDataset):
         self.open_task = task
         images = [self.get_image_float32(int(i))[..., :3].reshape(-1, 3) for i in self.frames_of_task(task)]
         self.task_pixels = torch.cat(images)
+        if self.valid_pixels is not None:
+            self._record_masks(task)
+
+    def _record_masks(self, task: int) -> None:
+        """Record the masks of `task`, and of the closed tasks before it not recorded yet (when a run resumes)."""
+        assert self.valid_pixels is not None and self.mask_filenames is not None
+        for earlier in range(task + 1):
+            frames = self.frames_of_task(earlier).tolist()
+            if all(self.valid_pixels.recorded(frame) for frame in frames):
+                continue
+            for frame in frames:
+                self.valid_pixels.record(frame, read_mask(self, frame))
+            if self.valid_pixels.count(*self.task_pixel_range(earlier)) == 0:
+                raise DatasetError(
+                    f"{self.mask_filenames[frames[0]]}: this and every other mask of task {earlier + 1}'s training "
+                    "frames is 0 everywhere: the task has no pixel to train on"
+                )
+
+    def draw_pixels(self, low: int, high: int, num: int, generator: Optional[torch.Generator] = None) -> Tensor:
+        """`num` flat pixel numbers drawn uniformly in [low, high), a range of whole frames of released tasks, over
+        the pixels their masks let train."""
+        if self.valid_pixels is None:
+            return torch.randint(low, high, (num,), generator=generator)
+        return self.valid_pixels.sample(low, high, num, generator)
 
     def close(self) -> None:
         """Drop the open task's pixels; no task's pixels are readable afterwards."""
@@ -83,7 +121,11 @@ class ContinualDataset(InputDataset):
     def open_task_pixel_range(self) -> tuple[int, int]:
         """Flat pixel numbers [start, end) covered by the open task."""
         assert self.open_task is not None, "no task is open"
-        frames = self.frames_of_task(self.open_task)
+        return self.task_pixel_range(self.open_task)
+
+    def task_pixel_range(self, task: int) -> tuple[int, int]:
+        """Flat pixel numbers [start, end) covered by `task`."""
+        frames = self.frames_of_task(task)
         return int(self.pixel_offsets[frames[0]]), int(self.pixel_offsets[frames[-1] + 1])
 
 
@@ -124,6 +166,50 @@ def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
         if mode not in IMAGE_MODES:
             raise DatasetError(f"{filename}: image mode {mode} is not supported (8-bit {', '.join(IMAGE_MODES)} only)")
         check_size(filename, size, dataset._dataparser_outputs.cameras, frame)
+
+
+def check_mask_headers(dataset: ContinualDataset, frames: Iterable[int]) -> None:
+    """Check from the file headers alone that each of `frames` has a one-channel mask of its image's size."""
+    for frame in frames:
+        mask_size(dataset, frame)
+
+
+def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
+    """Width and height of the frame's mask, checked: one channel, of its image's size before or after the dataset's
+    downscale."""
+    assert dataset.mask_filenames is not None
+    filename = dataset.mask_filenames[frame]
+    try:
+        check_regular(filename)
+        with Image.open(filename) as mask:
+            size, mode = mask.size, mask.mode
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
+        raise DatasetError(f"{filename}: cannot read mask ({first_line(error)})") from None
+    if mode not in MASK_MODES:
+        raise DatasetError(f"{filename}: mask mode {mode} is not supported (one channel: 8-bit L or 1-bit)")
+    cameras = dataset._dataparser_outputs.cameras
+    full = int(cameras.width[frame]), int(cameras.height[frame])
+    loaded = int(dataset.cameras.width[frame]), int(dataset.cameras.height[frame])
+    if tuple(size) not in (full, loaded):
+        downscaled = "" if loaded == full else f" ({loaded[0]}x{loaded[1]} after --downscale-factor)"
+        raise DatasetError(
+            f"{filename}: mask is {size[0]}x{size[1]} pixels, its image {full[0]}x{full[1]}{downscaled} "
+            "(a mask has its image's size)"
+        )
+    return size
+
+
+def read_mask(dataset: ContinualDataset, frame: int) -> Tensor:
+    """The frame's mask as its image is loaded, (H, W) bool, True where pixels train: a mask of the image's full size
+    is downscaled with the image, one of the downscaled size is read as it is."""
+    assert dataset.mask_filenames is not None
+    filename = dataset.mask_filenames[frame]
+    loaded = int(dataset.cameras.width[frame]), int(dataset.cameras.height[frame])
+    scale = 1.0 if mask_size(dataset, frame) == loaded else dataset.scale_factor
+    try:
+        return get_image_mask_tensor_from_path(filename, scale_factor=scale)[..., 0]
+    except (OSError, ValueError, Image.DecompressionBombError) as error:
+        raise DatasetError(f"{filename}: cannot read mask ({first_line(error)})") from None
 
 
 def check_size(filename: Path, size: Tuple[int, int], cameras: Cameras, frame: int) -> None:
