@@ -7,9 +7,11 @@ replay oracle's copy see the same model whether or not it was compiled.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -124,12 +126,28 @@ def warm_up(
     set_proposal_sampler_state(model, counters)
 
 
+KEEP_INPUT_GRADIENTS: contextvars.ContextVar[bool] = contextvars.ContextVar("keep_input_gradients", default=False)
+"""Set within `input_gradients()`: modules that stop_input_gradients detached keep their input's gradient."""
+
+
 def stop_input_gradients(module: nn.Module) -> None:
-    """Detach the input of `module`: autograd then skips the gradient with respect to it."""
+    """Detach the input of `module`: autograd then skips the gradient with respect to it (except within
+    `input_gradients()`)."""
     forward = module.forward
 
     @functools.wraps(forward)
     def detached_forward(in_tensor: torch.Tensor) -> torch.Tensor:
-        return forward(in_tensor.detach())
+        return forward(in_tensor if KEEP_INPUT_GRADIENTS.get() else in_tensor.detach())
 
     replace_forward(module, detached_forward)
+
+
+@contextlib.contextmanager
+def input_gradients() -> Iterator[None]:
+    """Within it, gradients flow through the inputs that stop_input_gradients detaches: fitting a test frame's pose
+    needs the gradient with respect to the sample positions."""
+    token = KEEP_INPUT_GRADIENTS.set(True)
+    try:
+        yield
+    finally:
+        KEEP_INPUT_GRADIENTS.reset(token)

@@ -23,7 +23,7 @@ from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.distributed import TaskDecision
-from continual_nerf.core.evaluation import evaluate_frames
+from continual_nerf.core.evaluation import AlignedEvalCameras, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
@@ -61,6 +61,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     pose_refinement_start: float = 0.0
     """Share of each task's budget before its frames' pose corrections start to learn (their rate then falls over the
     rest of the task): the field first learns what the new frames show, so that the corrections do not chase it."""
+    test_pose_alignment_steps: int = 0
+    """Before a test frame is measured, fit its pose to its image for this many steps with the field frozen (BARF's
+    test-time pose alignment, for poses with errors of their own per image); 0 measures it from its given pose."""
 
     def validate(self) -> None:
         super().validate()
@@ -68,6 +71,10 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             value = getattr(self, name)
             if not 0 < value <= 1:
                 raise ContinualConfigError(f"--pipeline.{name.replace('_', '-')} must be in (0, 1], got {value}")
+        if self.test_pose_alignment_steps < 0:
+            raise ContinualConfigError(
+                f"--pipeline.test-pose-alignment-steps must be at least 0, got {self.test_pose_alignment_steps}"
+            )
         for name in ("lr_decay_start", "pose_refinement_start"):
             value = getattr(self, name)
             if not 0 <= value < 1:
@@ -297,12 +304,25 @@ class ContinualPipeline(VanillaPipeline):
             f"{self.replay_buffer.nbytes / 2**20:.2f} MiB"
         )
 
+    @property
+    def pose_alignment(self) -> PoseAlignment:
+        """How test frames' poses are fitted before they are measured (--pipeline.test-pose-alignment-steps)."""
+        return PoseAlignment(self.config.test_pose_alignment_steps)
+
+    def get_average_eval_image_metrics(
+        self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
+    ):
+        loader = self.datamanager.fixed_indices_eval_dataloader
+        if self.config.test_pose_alignment_steps:
+            loader = AlignedEvalCameras(loader, self.model, self.pose_alignment)
+        return self.get_average_image_metrics(loader, "eval", step, output_path, get_std)
+
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
         datamanager = self.datamanager
         frames = datamanager.seen_test_frames()
         self.eval()
-        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist())
+        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
         self.train()
         tasks = datamanager.test_task_of_frame()[frames]
         seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
