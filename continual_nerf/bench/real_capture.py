@@ -224,6 +224,9 @@ class RealCaptureBenchmark(DemoBenchmark):
     """A hash grid small enough to train in minutes on a CPU: a quick look, not the measurement."""
     seed: int = 42
     """nerfstudio's --machine.seed of every run (42, nerfstudio's default): another seed, another --output-dir."""
+    test_pose_alignment_steps: int = 0
+    """--pipeline.test-pose-alignment-steps of every run: each test frame's pose fitted to its image before it is
+    measured, for captures whose poses have errors of their own per image; another value, another --output-dir."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
@@ -285,7 +288,11 @@ class RealCaptureBenchmark(DemoBenchmark):
         config.save_only_latest_checkpoint = True
         config.machine.seed = self.seed
         config.pipeline.model = dataclasses.replace(config.pipeline.model, **FEATURES[feature])
-        config.pipeline = dataclasses.replace(config.pipeline, **PIPELINE_OPTIONS.get(feature, {}))
+        config.pipeline = dataclasses.replace(
+            config.pipeline,
+            test_pose_alignment_steps=self.test_pose_alignment_steps,
+            **PIPELINE_OPTIONS.get(feature, {}),
+        )
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
             config.optimizers = {
                 **config.optimizers,
@@ -294,7 +301,10 @@ class RealCaptureBenchmark(DemoBenchmark):
         return config
 
     def title(self, scene: str) -> str:
-        return f"{scene}, {Setting.parse(self.setting)}, {self.rays_per_batch} rays per batch"
+        aligned = (
+            f", test poses fitted in {self.test_pose_alignment_steps} steps" if self.test_pose_alignment_steps else ""
+        )
+        return f"{scene}, {Setting.parse(self.setting)}, {self.rays_per_batch} rays per batch{aligned}"
 
     def print_table(self, scene: str, runs: Dict[str, CaptureRun]) -> None:
         table = Table(title=self.title(scene))
