@@ -31,6 +31,9 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 PRINCIPAL_POINT_MARGIN = 0.1
 """How far outside the image a principal point may lie, as a fraction of the image's width or height."""
 
+FISHEYE_CROP_RADIUS = "fisheye_crop_radius"
+"""DataparserOutputs.metadata key of CaptureFrames.fisheye_crop_radius, named after transforms.json's file-wide key."""
+
 ASPECT_TOLERANCE = 0.01
 """Relative difference of width/height ratios up to which images count as a resized copy of the calibrated ones
 (ScanNet's 640x480 copies of its 1296x968 colour images differ by 0.4%)."""
@@ -99,6 +102,9 @@ class CaptureFrames:
     """(N,) nerfstudio CameraType value of each image (None: every image perspective)."""
     mask_filenames: Optional[List[Path]] = None
     """Per image a single-channel mask, 0 where its pixels must not train (None: every pixel trains)."""
+    fisheye_crop_radius: Optional[np.ndarray] = None
+    """(N,) radius in pixels around each image's centre outside which its pixels must not train (inf: none), at the
+    images' size before --downscale-factor (None: every image trains whole)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -110,7 +116,7 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group", "camera_id", "camera_type")
+            for name in ("distortion", "time_group", "camera_id", "camera_type", "fisheye_crop_radius")
         }
         masks = None if self.mask_filenames is None else [self.mask_filenames[i] for i in keep]
         return replace(
@@ -238,7 +244,7 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         camera_type=camera_type,
     )
     masked = "" if frames.mask_filenames is None else ", each with its mask"
-    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{masked}")
+    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{masked}{cropped(frames)}")
     return CaptureOutputs(
         image_filenames=frames.image_filenames,
         mask_filenames=frames.mask_filenames,
@@ -250,12 +256,25 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     )
 
 
+def cropped(frames: CaptureFrames) -> str:
+    """What the log says of the frames' fisheye circles."""
+    radii = frames.fisheye_crop_radius
+    circled = np.array([]) if radii is None else radii[np.isfinite(radii)]
+    if not len(circled):
+        return ""
+    return (
+        f", {len(circled)} fisheye frames trained within {circled.min():g} px of the image centre (fisheye_crop_radius)"
+    )
+
+
 def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
-    """What the continual datamanager reads besides cameras: the image downscale, the capture instants and which
-    camera took each image."""
+    """What the continual datamanager reads besides cameras: the image downscale, the capture instants, which
+    camera took each image and the fisheye circles its pixels train within."""
     metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
     for key in ("time_group", "camera_id"):
         value = getattr(frames, key)
         if value is not None:
             metadata[key] = torch.from_numpy(np.asarray(value)).long()
+    if frames.fisheye_crop_radius is not None:
+        metadata[FISHEYE_CROP_RADIUS] = torch.from_numpy(frames.fisheye_crop_radius).double()
     return metadata

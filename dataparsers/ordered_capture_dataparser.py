@@ -26,7 +26,13 @@ from continual_nerf.dataparsers.capture import (
     capture_outputs,
     check_pose,
 )
-from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
+from continual_nerf.dataparsers.transforms_json import (
+    CROPPED_CAMERA_TYPES,
+    fisheye_crop_radius,
+    natural_key,
+    parse_intrinsics,
+    transforms_pose,
+)
 from continual_nerf.errors import ContinualConfigError, DatasetError
 
 Order = Literal["auto", "timestamp", "filename", "file"]
@@ -95,6 +101,8 @@ class ListedFrame:
     """nerfstudio's camera type of the frame's camera model."""
     mask: Optional[Path] = None
     """The frame's `mask_path` (0: the pixel does not train), None when it has none."""
+    crop_radius: Optional[float] = None
+    """Radius (pixels) around the image centre outside which a fisheye frame's pixels do not train; None: none."""
     timestamp: Any = None
     """The frame's raw `timestamp`/`time` value, None when it has none; parsed only when ordering by time."""
 
@@ -125,6 +133,7 @@ def read_transforms(path: Path) -> List[ListedFrame]:
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{path}: has no `frames` list")
     shared = {key: value for key, value in meta.items() if key != "frames"}
+    radius = fisheye_crop_radius(meta, str(path))
     listed = []
     for number, frame in enumerate(frames):
         if not isinstance(frame, dict) or "file_path" not in frame:
@@ -143,6 +152,7 @@ def read_transforms(path: Path) -> List[ListedFrame]:
                 distortion=distortion,
                 camera_type=camera_type,
                 mask=None if mask is None else existing_file(path.parent / str(mask), path, "mask"),
+                crop_radius=radius if camera_type in CROPPED_CAMERA_TYPES else None,
                 timestamp=next((frame[key] for key in TIMESTAMP_KEYS if key in frame), None),
             )
         )
@@ -329,6 +339,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
     distortion = np.stack([frame.distortion for frame in frames])
     camera_type = np.array([frame.camera_type.value for frame in frames])
     masks = [frame.mask for frame in frames if frame.mask is not None]  # every frame's or none (read_transforms)
+    radii = np.array([np.inf if frame.crop_radius is None else frame.crop_radius for frame in frames])
     return CaptureFrames(
         image_filenames=[frame.image for frame in frames],
         camera_to_worlds=np.stack([frame.camera_to_world for frame in frames]),
@@ -342,6 +353,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
         distortion=distortion if distortion.any() or CameraType.FISHEYE624.value in camera_type else None,
         camera_type=camera_type,
         mask_filenames=masks or None,
+        fisheye_crop_radius=radii if np.isfinite(radii).any() else None,
     )
 
 

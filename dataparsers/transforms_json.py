@@ -6,13 +6,14 @@
 
 from __future__ import annotations
 
+import math
 import re
-from typing import Any, List, Mapping, Tuple
+from typing import Any, List, Mapping, Optional, Tuple
 
 import numpy as np
 from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, CameraType
 
-from continual_nerf.dataparsers.capture import check_intrinsics, check_pose
+from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS, check_intrinsics, check_pose
 from continual_nerf.errors import DatasetError
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -41,6 +42,10 @@ CAMERA_MODEL_OF_TYPE = {**{kind: name for name, kind in CAMERA_MODEL_TO_TYPE.ite
 FISHEYE624_DISTORTION = 12
 """Distortion parameters of nerfstudio's FISHEYE624 model (6 radial, 2 tangential, 4 thin-prism), given as
 `distortion_params`; every other model takes the 6 of DISTORTION_KEYS."""
+
+CROPPED_CAMERA_TYPES = (CameraType.FISHEYE, CameraType.FISHEYE624)
+"""Camera types whose frames transforms.json's `fisheye_crop_radius` crops, as in nerfstudio's parser (frames of other
+types ignore it)."""
 
 
 def camera_type(values: Mapping[str, Any], source: str) -> CameraType:
@@ -78,6 +83,22 @@ def parse_intrinsics(values: Mapping[str, Any], source: str) -> Tuple[np.ndarray
         raise DatasetError(f"{source}: distortion parameters must be finite numbers")
     check_intrinsics(*intrinsics, source=source)
     return intrinsics, distortion, kind
+
+
+def fisheye_crop_radius(meta: Mapping[str, Any], source: str) -> Optional[float]:
+    """The file's checked `fisheye_crop_radius` (a positive finite number of pixels), None when it has none: the
+    radius around the image centre of the circle fisheye images train within (`ns-process-data aria` and the Eyeful
+    Tower download write it)."""
+    value = meta.get(FISHEYE_CROP_RADIUS)
+    if value is None:  # absent or null, which nerfstudio reads alike
+        return None
+    try:
+        radius = math.nan if isinstance(value, bool) else float(value)
+    except (TypeError, ValueError, OverflowError):
+        radius = math.nan
+    if not (math.isfinite(radius) and radius > 0):
+        raise DatasetError(f"{source}: {FISHEYE_CROP_RADIUS} must be a positive finite number of pixels, got {value!r}")
+    return radius
 
 
 def transforms_pose(value: Any, source: str) -> np.ndarray:

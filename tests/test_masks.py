@@ -1,5 +1,6 @@
-"""Per-frame masks of a transforms.json capture (`mask_path`): masked-out pixels never train, for the open task, for
-replay or in the replay buffer; bad masks are one-line errors; evaluation still measures whole frames."""
+"""Per-frame masks of a transforms.json capture (`mask_path`) and its fisheye circle (`fisheye_crop_radius`): pixels
+masked out or outside the circle never train, for the open task, for replay or in the replay buffer; bad masks are
+one-line errors; evaluation still measures whole frames."""
 
 from __future__ import annotations
 
@@ -11,7 +12,21 @@ from typing import Callable, List, Tuple
 import numpy as np
 import pytest
 import torch
-from helpers import ALL_MASKED, HEIGHT, NUMBERS, WIDTH, edit_transforms, mask_of, masked_capture, shrink, tiny_config
+from helpers import (
+    ALL_MASKED,
+    HEIGHT,
+    NUMBERS,
+    WIDTH,
+    arc_poses,
+    edit_transforms,
+    mask_of,
+    masked_capture,
+    numbered_frames,
+    shrink,
+    tiny_config,
+    write_transforms,
+)
+from nerfstudio.cameras.cameras import CameraType
 from PIL import Image
 
 from continual_nerf.core.continual_datamanager import ContinualDataManager
@@ -235,3 +250,112 @@ def test_masks_come_with_the_frames_the_parser_keeps(tmp_path):
         "frame_14.png",
         "frame_18.png",
     ]
+
+
+# ---- fisheye_crop_radius: fisheye frames train inside the circle only ----
+
+RADIUS = 8.0
+"""The captures' fisheye_crop_radius: a circle well inside the 32x24 images, around pixel (16, 12)."""
+
+FISHEYE_MODELS = {
+    "OPENCV_FISHEYE": {"camera_model": "OPENCV_FISHEYE"},
+    "FISHEYE624": {"camera_model": "FISHEYE624", "distortion_params": [0.0] * 12},
+}
+
+
+def circle(width: int, height: int, radius: float) -> np.ndarray:
+    """(height, width): whether each pixel lies less than `radius` from pixel (width // 2, height // 2), where
+    nerfstudio's fisheye sampler centres its circle."""
+    y, x = np.mgrid[:height, :width]
+    return (x - width // 2) ** 2 + (y - height // 2) ** 2 < radius**2
+
+
+def in_circle(dataset: ContinualDataset, radius: float) -> torch.Tensor:
+    """Over the flat pixel numbering of the training frames: whether each pixel lies inside the circle of `radius`
+    (loaded pixels) around its image's centre."""
+    sizes = zip(dataset.cameras.width.view(-1).tolist(), dataset.cameras.height.view(-1).tolist())
+    return torch.from_numpy(np.concatenate([circle(width, height, radius).reshape(-1) for width, height in sizes]))
+
+
+def released_draws(manager: ContinualDataManager) -> torch.Tensor:
+    """Many draws with task 2 open: half of them replay task 1's frames, so every training frame is drawn from."""
+    manager.next_train(0)
+    manager.release(1)
+    return draws(manager)
+
+
+@pytest.mark.parametrize("model", [*FISHEYE_MODELS, "OPENCV"])
+def test_fisheye_pixels_outside_the_crop_radius_are_never_drawn(tmp_path, model):
+    torch.manual_seed(0)
+    shared = FISHEYE_MODELS.get(model, {"camera_model": model})
+    capture = write_transforms(tmp_path / "capture", numbered_frames(arc_poses()), fisheye_crop_radius=RADIUS, **shared)
+    manager = datamanager(capture, tmp_path / "outputs")
+    dataset = manager.train_dataset
+    flat = released_draws(manager)
+    inside = in_circle(dataset, RADIUS)
+    if model == "OPENCV":  # nerfstudio's rule: the radius crops fisheye frames only
+        assert dataset.valid_pixels is None and not bool(inside[flat].all()), "a perspective frame trains whole"
+        return
+    assert bool(inside[flat].all()), "a pixel outside the fisheye circle was drawn"
+    assert torch.equal(torch.unique(flat), torch.nonzero(inside).view(-1)), "every pixel inside it is drawn"
+    _, batch = manager.next_train(1)
+    _, y, x = batch["indices"].unbind(-1)
+    assert bool(torch.from_numpy(circle(WIDTH, HEIGHT, RADIUS))[y, x].all()), "the batch's rays too"
+    kept, _ = manager.open_task_pixels()  # what the replay buffer keeps a share of
+    start, end = dataset.open_task_pixel_range()
+    assert torch.equal(kept, torch.nonzero(inside[start:end]).view(-1) + start)
+
+
+def test_only_the_fisheye_frames_of_a_capture_are_cropped(tmp_path):
+    torch.manual_seed(0)
+    frames = numbered_frames(arc_poses())
+    for frame in frames[::2]:
+        frame["camera_model"] = "OPENCV"
+    capture = write_transforms(tmp_path / "capture", frames, camera_model="OPENCV_FISHEYE", fisheye_crop_radius=RADIUS)
+    manager = datamanager(capture, tmp_path / "outputs")
+    dataset = manager.train_dataset
+    flat = released_draws(manager)
+    frame = torch.searchsorted(dataset.pixel_offsets, flat, right=True) - 1
+    fisheye = dataset.cameras.camera_type.view(-1)[frame] == CameraType.FISHEYE.value
+    inside = in_circle(dataset, RADIUS)[flat]
+    assert bool(fisheye.any()) and bool((~fisheye).any())
+    assert bool(inside[fisheye].all()) and not bool(inside[~fisheye].all())
+
+
+def test_the_crop_radius_scales_with_the_downscale_factor(tmp_path):
+    torch.manual_seed(0)
+    capture = write_transforms(
+        tmp_path / "capture", numbered_frames(arc_poses()), camera_model="OPENCV_FISHEYE", fisheye_crop_radius=RADIUS
+    )
+    manager = datamanager(capture, tmp_path / "outputs", downscale_factor=2)
+    dataset = manager.train_dataset
+    flat = released_draws(manager)
+    assert int(dataset.cameras.width[0]) == WIDTH // 2
+    # the radius is in the listed images' pixels: half as many in the 16x12 images loaded
+    assert torch.equal(torch.unique(flat), torch.nonzero(in_circle(dataset, RADIUS / 2)).view(-1))
+
+
+def test_masks_and_the_fisheye_circle_both_apply(tmp_path):
+    torch.manual_seed(0)
+    capture = masked_capture(tmp_path / "capture", camera_model="OPENCV_FISHEYE", fisheye_crop_radius=RADIUS)
+    manager = datamanager(capture, tmp_path / "outputs")
+    dataset = manager.train_dataset
+    flat = released_draws(manager)
+    masked, inside = expected_valid(dataset), in_circle(dataset, RADIUS)
+    assert bool((masked & ~inside).any()) and bool((inside & ~masked).any()), "each leaves out pixels the other keeps"
+    assert torch.equal(torch.unique(flat), torch.nonzero(masked & inside).view(-1))
+
+
+def test_a_task_masked_out_inside_its_fisheye_circle_is_a_one_line_error(tmp_path):
+    capture = masked_capture(tmp_path / "capture", camera_model="OPENCV_FISHEYE", fisheye_crop_radius=RADIUS)
+    outside = (~circle(WIDTH, HEIGHT, RADIUS)).astype(np.uint8) * 255
+    for number in (14, 16, 18, 20):  # task 2's training frames: masks that keep only what the circle leaves out
+        Image.fromarray(outside).save(capture / "masks" / f"frame_{number}.png")
+    manager = datamanager(capture, tmp_path / "outputs")
+    manager.next_train(0)
+    with pytest.raises(DatasetError) as raised:
+        manager.release(1)
+    assert str(raised.value) == (
+        f"{capture / 'masks' / 'frame_14.png'}: this and every other mask of task 2's training frames is 0 everywhere "
+        "inside its fisheye circle: the task has no pixel to train on"
+    )

@@ -240,6 +240,39 @@ def error_of(data: Path, error: type = DatasetError, **options) -> str:
     return message
 
 
+def crop_radii(outputs: DataparserOutputs) -> dict:
+    """Each frame's fisheye crop radius in the dataparser's metadata, by image name (inf: not cropped)."""
+    return dict(zip(names(outputs), outputs.metadata["fisheye_crop_radius"].tolist()))
+
+
+def test_the_fisheye_crop_radius_reaches_the_fisheye_frames_only(tmp_path):
+    frames = numbered_frames(arc_poses())
+    for frame in frames[2::4]:  # frame_6 and frame_14
+        frame["camera_model"] = "OPENCV_FISHEYE"
+    mixed = write_transforms(tmp_path / "mixed", frames, fisheye_crop_radius=707.5)
+    assert crop_radii(parse(mixed, frame_stride=2)) == {
+        "frame_2.png": np.inf,
+        "frame_6.png": 707.5,
+        "frame_10.png": np.inf,
+        "frame_14.png": 707.5,
+        "frame_18.png": np.inf,
+    }
+    perspective = write_transforms(tmp_path / "perspective", numbered_frames(arc_poses()), fisheye_crop_radius=707.5)
+    assert "fisheye_crop_radius" not in parse(perspective).metadata, "ignored without fisheye frames, as nerfstudio"
+    null = write_transforms(tmp_path / "null", frames, fisheye_crop_radius=None)
+    assert "fisheye_crop_radius" not in parse(null).metadata, "null: no radius, as nerfstudio reads it"
+
+
+@pytest.mark.parametrize("radius", [0, -3.5, float("inf"), float("nan"), "wide", True, [8]])
+def test_a_crop_radius_that_is_not_a_positive_finite_number_is_a_one_line_error(tmp_path, radius):
+    folder = write_transforms(
+        tmp_path / "fisheye", numbered_frames(arc_poses()), camera_model="OPENCV_FISHEYE", fisheye_crop_radius=radius
+    )
+    assert error_of(folder) == (
+        f"{folder / 'transforms.json'}: fisheye_crop_radius must be a positive finite number of pixels, got {radius!r}"
+    )
+
+
 def test_missing_folder_and_folder_without_a_capture(tmp_path):
     assert error_of(tmp_path / "nowhere") == f"{tmp_path / 'nowhere'}: no such capture folder or file"
     assert error_of(tmp_path).startswith(f"{tmp_path}: holds neither transforms.json nor a COLMAP model (")

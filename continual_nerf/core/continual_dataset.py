@@ -17,7 +17,8 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
-from continual_nerf.core.valid_pixels import ValidPixels
+from continual_nerf.core.valid_pixels import ValidPixels, inside_circle
+from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS
 from continual_nerf.errors import DatasetError, first_line
 from continual_nerf.untrusted_files import check_regular
 
@@ -38,8 +39,9 @@ class ContinualDataset(InputDataset):
     Camera rays (poses and intrinsics) of every frame stay available: the continual setting allows
     rays of past tasks. Pixels of a task are loaded when it opens and dropped when it closes; reading
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
-    The task and camera of every frame are in its metadata, which nerfstudio hands to the model. Masks, when the
-    capture has them, decide which pixels `draw_pixels` may draw, for the open task and for replay alike.
+    The task and camera of every frame are in its metadata, which nerfstudio hands to the model. Masks and fisheye
+    circles, when the capture has them, decide which pixels `draw_pixels` may draw, for the open task and for replay
+    alike.
     """
 
     def __init__(
@@ -67,8 +69,13 @@ class ContinualDataset(InputDataset):
         pixel_counts = (self.cameras.width * self.cameras.height).view(-1).long()
         self.pixel_offsets = torch.cat([torch.zeros(1, dtype=torch.long), pixel_counts.cumsum(0)])
         """Start of every frame in the flat pixel numbering of all training frames; last entry is the total."""
-        self.valid_pixels = None if self.mask_filenames is None else ValidPixels(self.pixel_offsets)
-        """Which pixels of the released tasks their masks let train; None without masks."""
+        radii = dataparser_outputs.metadata.get(FISHEYE_CROP_RADIUS)
+        self.crop_radius: Optional[Tensor] = None if radii is None else radii.double() * scale_factor
+        """Per frame the radius (loaded pixels) around its centre outside which its pixels never train (inf: none);
+        None: no frame has one."""
+        cropped = self.crop_radius is not None or self.mask_filenames is not None
+        self.valid_pixels = ValidPixels(self.pixel_offsets) if cropped else None
+        """Which pixels of the released tasks their masks and circles let train; None without either."""
 
     def frames_of_task(self, task: int) -> torch.Tensor:
         return torch.nonzero(self.task_of_frame == task).view(-1)
@@ -80,26 +87,38 @@ class ContinualDataset(InputDataset):
         images = [self.get_image_float32(int(i))[..., :3].reshape(-1, 3) for i in self.frames_of_task(task)]
         self.task_pixels = torch.cat(images)
         if self.valid_pixels is not None:
-            self._record_masks(task)
+            self._record_valid_pixels(task)
 
-    def _record_masks(self, task: int) -> None:
-        """Record the masks of `task`, and of the closed tasks before it not recorded yet (when a run resumes)."""
-        assert self.valid_pixels is not None and self.mask_filenames is not None
+    def _record_valid_pixels(self, task: int) -> None:
+        """Record the pixels of `task` that may train, and of the closed tasks before it not recorded yet (when a run
+        resumes)."""
+        assert self.valid_pixels is not None
         for earlier in range(task + 1):
             frames = self.frames_of_task(earlier).tolist()
             if all(self.valid_pixels.recorded(frame) for frame in frames):
                 continue
             for frame in frames:
-                self.valid_pixels.record(frame, read_mask(self, frame))
+                self.valid_pixels.record(frame, self.trainable_pixels(frame))
             if self.valid_pixels.count(*self.task_pixel_range(earlier)) == 0:
+                assert self.mask_filenames is not None, "a circle keeps its centre pixel: only masks leave none"
+                circles = "" if self.crop_radius is None else " inside its fisheye circle"
                 raise DatasetError(
                     f"{self.mask_filenames[frames[0]]}: this and every other mask of task {earlier + 1}'s training "
-                    "frames is 0 everywhere: the task has no pixel to train on"
+                    f"frames is 0 everywhere{circles}: the task has no pixel to train on"
                 )
+
+    def trainable_pixels(self, frame: int) -> Tensor:
+        """(H, W) bool of the frame as loaded: True where its mask (if any) is nonzero and inside its fisheye circle
+        (if any)."""
+        width, height = int(self.cameras.width[frame]), int(self.cameras.height[frame])
+        valid = torch.ones((height, width), dtype=torch.bool) if self.mask_filenames is None else read_mask(self, frame)
+        if self.crop_radius is not None and torch.isfinite(self.crop_radius[frame]):
+            valid &= inside_circle(width, height, float(self.crop_radius[frame]))
+        return valid
 
     def draw_pixels(self, low: int, high: int, num: int, generator: Optional[torch.Generator] = None) -> Tensor:
         """`num` flat pixel numbers drawn uniformly in [low, high), a range of whole frames of released tasks, over
-        the pixels their masks let train."""
+        the pixels their masks and circles let train."""
         if self.valid_pixels is None:
             return torch.randint(low, high, (num,), generator=generator)
         return self.valid_pixels.sample(low, high, num, generator)

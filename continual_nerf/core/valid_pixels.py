@@ -1,10 +1,11 @@
-"""Which training pixels may be drawn, when a capture has masks (transforms.json `mask_path`: 0 = never train).
+"""Which training pixels may be drawn, when a capture has masks (transforms.json `mask_path`: 0 = never train) or
+fisheye circles (its `fisheye_crop_radius`: pixels outside never train).
 
 A mask says which rays are valid, not what the image shows, so the record is kept for closed tasks too: replay must
 not draw a masked-out ray either (the oracle's render there is meaningless). It is one bit per pixel (1/96 of the
 open task's float32 colours; 78 MB for 300 frames of 1920x1080), each frame's bits starting at a byte, filled from a
-task's mask files when the task opens (a resumed run reads the closed tasks' masks again). Pixels are drawn by
-rejection against it: uniform flat pixel numbers in a range, keeping the valid ones until there are enough.
+task's mask files and circles when the task opens (a resumed run reads the closed tasks' masks again). Pixels are
+drawn by rejection against it: uniform flat pixel numbers in a range, keeping the valid ones until there are enough.
 """
 
 from __future__ import annotations
@@ -18,6 +19,14 @@ from torch import Tensor
 
 MAX_CANDIDATES = 1 << 20
 """Candidates drawn at most per rejection round (a capture masked almost everywhere takes more rounds, not memory)."""
+
+
+def inside_circle(width: int, height: int, radius: float) -> Tensor:
+    """(height, width) bool: the pixels less than `radius` from the image centre, placed and measured as nerfstudio
+    does (the centre at pixel (width // 2, height // 2); the full-image datamanager's fisheye mask)."""
+    x = torch.arange(width, dtype=torch.float64) - width // 2
+    y = torch.arange(height, dtype=torch.float64) - height // 2
+    return x[None, :] ** 2 + y[:, None] ** 2 < radius**2
 
 
 class ValidPixels:
