@@ -411,17 +411,20 @@ def test_short_continual_run_on_a_transforms_json_capture(numbered, run_dir):
 
 @pytest.mark.slow
 def test_short_continual_run_on_a_fisheye_capture_with_masks(tmp_path, run_dir, single_thread):
-    capture = masked_capture(tmp_path / "capture", camera_model="OPENCV_FISHEYE", **FISHEYE_DISTORTION)
+    capture = masked_capture(
+        tmp_path / "capture", camera_model="OPENCV_FISHEYE", fisheye_crop_radius=10.5, **FISHEYE_DISTORTION
+    )
     config = tiny_config(run_dir, OrderedCaptureDataParserConfig(data=capture), num_tasks=2, iterations_per_task=2)
     pipeline = train(config).pipeline
     datamanager = pipeline.datamanager
     assert len(pipeline.accuracy.psnr) == 2 and np.isfinite(pipeline.accuracy.psnr[-1]).all(), "trained and evaluated"
     assert bool((datamanager.eval_dataset.cameras.camera_type == CameraType.FISHEYE.value).all())
     exported = transforms_json(datamanager, pipeline.model)  # what continual-nerf-export-poses writes
-    assert exported["camera_model"] == "OPENCV_FISHEYE"
+    assert exported["camera_model"] == "OPENCV_FISHEYE" and exported["fisheye_crop_radius"] == 10.5
     (tmp_path / "exported").mkdir()
     (tmp_path / "exported" / "transforms.json").write_text(json.dumps(exported))
     reread = parse(tmp_path / "exported")
     assert set(types_by_name(reread).values()) == {CameraType.FISHEYE}
+    assert set(crop_radii(reread).values()) == {10.5}, "the export's fisheye frames are cropped alike"
     assert reread.mask_filenames is not None
     assert [path.name for path in reread.mask_filenames] == [f"frame_{number}.png" for number in NUMBERS]
