@@ -170,17 +170,22 @@ def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
     return image
 
 
+def header(filename: Path, kind: str) -> Tuple[Tuple[int, int], str]:
+    """Size and mode of an image or mask file from its header alone; an unreadable one is a one-line error."""
+    try:
+        check_regular(filename)
+        with Image.open(filename) as image:
+            return image.size, image.mode
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
+        raise DatasetError(f"{filename}: cannot read {kind} ({first_line(error)})") from None
+
+
 def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
     """Check from the file headers alone, without decoding pixels, that each of `frames` is an 8-bit image of its
     camera's size."""
     for frame in frames:
         filename = dataset._dataparser_outputs.image_filenames[frame]
-        try:
-            check_regular(filename)
-            with Image.open(filename) as image:
-                size, mode = image.size, image.mode
-        except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
-            raise DatasetError(f"{filename}: cannot read image ({first_line(error)})") from None
+        size, mode = header(filename, "image")
         # nerfstudio reads other modes wrongly (palette indices as grey) or not at all (16-bit, two channels)
         if mode not in IMAGE_MODES:
             raise DatasetError(f"{filename}: image mode {mode} is not supported (8-bit {', '.join(IMAGE_MODES)} only)")
@@ -198,12 +203,7 @@ def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
     downscale."""
     assert dataset.mask_filenames is not None
     filename = dataset.mask_filenames[frame]
-    try:
-        check_regular(filename)
-        with Image.open(filename) as mask:
-            size, mode = mask.size, mask.mode
-    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
-        raise DatasetError(f"{filename}: cannot read mask ({first_line(error)})") from None
+    size, mode = header(filename, "mask")
     if mode not in MASK_MODES:
         raise DatasetError(f"{filename}: mask mode {mode} is not supported (one channel: 8-bit L or 1-bit)")
     cameras = dataset._dataparser_outputs.cameras
