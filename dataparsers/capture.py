@@ -34,6 +34,10 @@ PRINCIPAL_POINT_MARGIN = 0.1
 FISHEYE_CROP_RADIUS = "fisheye_crop_radius"
 """DataparserOutputs.metadata key of CaptureFrames.fisheye_crop_radius, named after transforms.json's file-wide key."""
 
+HELD_OUT = "held_out"
+"""DataparserOutputs.metadata key of CaptureFrames.held_out (transforms.json's test_filenames): the continual split's
+test frames instead of every --pipeline.datamanager.test-interval-th."""
+
 ASPECT_TOLERANCE = 0.01
 """Relative difference of width/height ratios up to which images count as a resized copy of the calibrated ones
 (ScanNet's 640x480 copies of its 1296x968 colour images differ by 0.4%)."""
@@ -105,6 +109,8 @@ class CaptureFrames:
     fisheye_crop_radius: Optional[np.ndarray] = None
     """(N,) radius in pixels around each image's centre outside which its pixels must not train (inf: none), at the
     images' size before --downscale-factor (None: every image trains whole)."""
+    held_out: Optional[np.ndarray] = None
+    """(N,) bool, the images the capture names for testing only (None: the datamanager holds out every n-th)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -116,7 +122,7 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group", "camera_id", "camera_type", "fisheye_crop_radius")
+            for name in ("distortion", "time_group", "camera_id", "camera_type", "fisheye_crop_radius", "held_out")
         }
         masks = None if self.mask_filenames is None else [self.mask_filenames[i] for i in keep]
         return replace(
@@ -244,7 +250,8 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
         camera_type=camera_type,
     )
     masked = "" if frames.mask_filenames is None else ", each with its mask"
-    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{masked}{cropped(frames)}")
+    tested = "" if frames.held_out is None else f", {int(frames.held_out.sum())} of them named for testing"
+    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{tested}{masked}{cropped(frames)}")
     return CaptureOutputs(
         image_filenames=frames.image_filenames,
         mask_filenames=frames.mask_filenames,
@@ -269,7 +276,7 @@ def cropped(frames: CaptureFrames) -> str:
 
 def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
     """What the continual datamanager reads besides cameras: the image downscale, the capture instants, which
-    camera took each image and the fisheye circles its pixels train within."""
+    camera took each image, the fisheye circles its pixels train within and the images named for testing."""
     metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
     for key in ("time_group", "camera_id"):
         value = getattr(frames, key)
@@ -277,4 +284,6 @@ def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[st
             metadata[key] = torch.from_numpy(np.asarray(value)).long()
     if frames.fisheye_crop_radius is not None:
         metadata[FISHEYE_CROP_RADIUS] = torch.from_numpy(frames.fisheye_crop_radius).double()
+    if frames.held_out is not None:
+        metadata[HELD_OUT] = torch.from_numpy(frames.held_out).bool()
     return metadata

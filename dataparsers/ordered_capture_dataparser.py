@@ -1,17 +1,19 @@
 """`continual-nerfstudio`: a nerfstudio transforms.json or COLMAP capture (Tanks and Temples, ...) in capture order.
 
 The capture order comes from the frames' timestamps, else the numbers in their image file names, else
-the order the file lists them in; `--order` forces one, and the log says which one was used.
+the order the file lists them in; `--order` forces one, and the log says which one was used. Frames a transforms.json
+names in val_filenames or test_filenames are the test frames of their tasks and never train.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Tuple, Type, get_args
+from typing import Any, Callable, Dict, List, Literal, Optional, Set, Tuple, Type, get_args
 
 import numpy as np
 from nerfstudio.cameras.cameras import CameraType
@@ -43,6 +45,9 @@ ORDER_DESCRIPTIONS = {
     "file": "the order the file lists the frames in",
 }
 """How the log names each capture order."""
+
+SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
+"""transforms.json keys naming the frames of nerfstudio's splits."""
 
 TIMESTAMP_KEYS = ("timestamp", "time")
 """Per-frame keys of transforms.json read as the capture time; the first one present is used."""
@@ -105,6 +110,8 @@ class ListedFrame:
     """Radius (pixels) around the image centre outside which a fisheye frame's pixels do not train; None: none."""
     timestamp: Any = None
     """The frame's raw `timestamp`/`time` value, None when it has none; parsed only when ordering by time."""
+    held_out: bool = False
+    """Whether the file names the frame for testing (val_filenames, test_filenames): it never trains."""
 
 
 def existing_file(path: Path, listed_in: Path, what: str = "image") -> Path:
@@ -157,7 +164,41 @@ def read_transforms(path: Path) -> List[ListedFrame]:
             )
         )
     check_masks_everywhere_or_nowhere(listed, path)
-    return listed
+    return apply_split_lists(meta, listed, path)
+
+
+def split_list(meta: Dict[str, Any], key: str, path: Path) -> Optional[Set[str]]:
+    """The normalised file paths of the file's `key` list (nerfstudio's train/val/test_filenames), None without one."""
+    names = meta.get(key)
+    if names is None:
+        return None
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise DatasetError(f"{path}: {key} must be a list of file paths")
+    return {os.path.normpath(name) for name in names}
+
+
+def apply_split_lists(meta: Dict[str, Any], listed: List[ListedFrame], path: Path) -> List[ListedFrame]:
+    """nerfstudio's split lists in the continual setting: frames in val_filenames or test_filenames are test frames
+    and never train; with train_filenames, frames in none of the lists are left out."""
+    lists = {key: split_list(meta, key, path) for key in SPLIT_LISTS}
+    listed_names = {os.path.normpath(frame.name) for frame in listed}
+    for key, names in lists.items():
+        unknown = sorted((names or set()) - listed_names)
+        if unknown:
+            raise DatasetError(f"{path}: {key} names {unknown[0]}, which is no frame's file_path")
+    tested = (lists["val_filenames"] or set()) | (lists["test_filenames"] or set())
+    trained = lists["train_filenames"]
+    both = sorted(tested & (trained or set()))
+    if both:
+        raise DatasetError(
+            f"{path}: {both[0]} is in train_filenames and in val_filenames or test_filenames; a test frame never trains"
+        )
+    kept = set(listed_names) if trained is None else trained | tested
+    return [
+        replace(frame, held_out=os.path.normpath(frame.name) in tested)
+        for frame in listed
+        if os.path.normpath(frame.name) in kept
+    ]
 
 
 def colmap_model_files(folder: Path) -> Optional[Tuple[Path, Path]]:
@@ -340,6 +381,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
     camera_type = np.array([frame.camera_type.value for frame in frames])
     masks = [frame.mask for frame in frames if frame.mask is not None]  # every frame's or none (read_transforms)
     radii = np.array([np.inf if frame.crop_radius is None else frame.crop_radius for frame in frames])
+    held_out = np.array([frame.held_out for frame in frames])
     return CaptureFrames(
         image_filenames=[frame.image for frame in frames],
         camera_to_worlds=np.stack([frame.camera_to_world for frame in frames]),
@@ -354,6 +396,7 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
         camera_type=camera_type,
         mask_filenames=masks or None,
         fisheye_crop_radius=radii if np.isfinite(radii).any() else None,
+        held_out=held_out if held_out.any() else None,
     )
 
 

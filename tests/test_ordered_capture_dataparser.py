@@ -30,6 +30,7 @@ from nerfstudio.data.utils import colmap_parsing_utils as colmap
 from nerfstudio.model_components.ray_generators import RayGenerator
 
 from continual_nerf.core.continual_datamanager import ContinualDataManager, camera_ids
+from continual_nerf.core.task_split import split_capture
 from continual_nerf.dataparsers import ordered_capture_dataparser as parser_module
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.transforms_json import CAMERA_MODELS, FISHEYE624_DISTORTION
@@ -273,6 +274,65 @@ def test_a_crop_radius_that_is_not_a_positive_finite_number_is_a_one_line_error(
     )
 
 
+def split_names(outputs: DataparserOutputs, num_tasks: int) -> tuple:
+    """Training and test image names of every task of the continual split of `outputs`."""
+    split = split_capture(outputs, num_tasks, test_interval=4)
+    image_names = np.array(names(outputs))
+    return [list(image_names[f]) for f in split.train_frames], [list(image_names[f]) for f in split.test_frames]
+
+
+def test_the_split_lists_name_the_test_frames_and_the_frames_that_train(tmp_path):
+    listed = write_transforms(
+        tmp_path / "listed",
+        numbered_frames(arc_poses()),
+        train_filenames=[f"images/frame_{number}.png" for number in (2, 4, 10, 12, 14, 18)],
+        val_filenames=["./images/frame_6.png"],  # nerfstudio's lists may spell a path differently
+        test_filenames=["images/frame_16.png"],
+    )
+    outputs = parse(listed)
+    assert names(outputs) == [f"frame_{number}.png" for number in (2, 4, 6, 10, 12, 14, 16, 18)], "frame_8, 20 unlisted"
+    assert outputs.metadata["held_out"].tolist() == [False, False, True, False, False, False, True, False]
+    train_names, test_names = split_names(outputs, num_tasks=2)
+    assert test_names == [["frame_6.png"], ["frame_16.png"]], "the listed frames, not every 4th"
+    assert train_names == [
+        ["frame_2.png", "frame_4.png", "frame_10.png"],
+        ["frame_12.png", "frame_14.png", "frame_18.png"],
+    ]
+    unlisted = parse(write_transforms(tmp_path / "unlisted", numbered_frames(arc_poses())))
+    assert "held_out" not in unlisted.metadata
+    assert split_names(unlisted, num_tasks=2)[1] == [["frame_2.png", "frame_10.png"], ["frame_12.png", "frame_20.png"]]
+
+
+def test_test_lists_without_a_train_list_train_every_other_frame(tmp_path):
+    listed = write_transforms(tmp_path / "listed", numbered_frames(arc_poses()), test_filenames=["images/frame_8.png"])
+    outputs = parse(listed, frame_stride=1)
+    assert len(names(outputs)) == len(NUMBERS)
+    train_names, test_names = split_names(outputs, num_tasks=1)
+    assert test_names == [["frame_8.png"]] and len(train_names[0]) == len(NUMBERS) - 1
+    with pytest.raises(ContinualConfigError) as raised:
+        split_capture(outputs, 2, test_interval=4)
+    assert str(raised.value) == (
+        "--pipeline.datamanager.num-tasks 2: task 2 holds none of the frames the capture names for testing "
+        "(test_filenames); every task needs training and test frames: use fewer tasks"
+    )
+
+
+@pytest.mark.parametrize(
+    "lists, expected",
+    [
+        ({"test_filenames": ["images/frame_99.png"]}, "test_filenames names images/frame_99.png, which is no frame's"),
+        ({"val_filenames": "images/frame_2.png"}, "val_filenames must be a list of file paths"),
+        (
+            {"train_filenames": ["images/frame_2.png"], "test_filenames": ["images/frame_2.png"]},
+            "images/frame_2.png is in train_filenames and in val_filenames or test_filenames; a test frame never",
+        ),
+    ],
+)
+def test_bad_split_lists_are_one_line_errors(tmp_path, lists, expected):
+    folder = write_transforms(tmp_path / "listed", numbered_frames(arc_poses()), **lists)
+    assert error_of(folder).startswith(f"{folder / 'transforms.json'}: {expected}")
+
+
 def test_missing_folder_and_folder_without_a_capture(tmp_path):
     assert error_of(tmp_path / "nowhere") == f"{tmp_path / 'nowhere'}: no such capture folder or file"
     assert error_of(tmp_path).startswith(f"{tmp_path}: holds neither transforms.json nor a COLMAP model (")
@@ -407,6 +467,18 @@ def test_short_continual_run_on_a_transforms_json_capture(numbered, run_dir):
     frames = datamanager.train_dataset.image_filenames + datamanager.eval_dataset.image_filenames
     assert sorted(path.name for path in frames) == sorted(f"frame_{number}.png" for number in NUMBERS)
     assert (trainer.base_dir / "dataparser_transforms.json").is_file()
+
+
+@pytest.mark.slow
+def test_a_run_tests_on_the_frames_the_capture_lists_for_testing_and_never_trains_on_them(tmp_path, run_dir):
+    tested = ["images/frame_4.png", "images/frame_14.png", "images/frame_18.png"]
+    listed = write_transforms(tmp_path / "listed", numbered_frames(arc_poses()), test_filenames=tested)
+    config = tiny_config(run_dir, OrderedCaptureDataParserConfig(data=listed), num_tasks=2, iterations_per_task=2)
+    pipeline = train(config).pipeline
+    datamanager = pipeline.datamanager
+    assert [path.name for path in datamanager.eval_dataset.image_filenames] == [Path(name).name for name in tested]
+    assert not {Path(name).name for name in tested} & {path.name for path in datamanager.train_dataset.image_filenames}
+    assert [len(row) for row in pipeline.accuracy.psnr] == [1, 2], "every task measured on its listed frames"
 
 
 @pytest.mark.slow

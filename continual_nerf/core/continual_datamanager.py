@@ -33,7 +33,7 @@ from continual_nerf.core.continual_dataset import (
 )
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
-from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_into_tasks
+from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
@@ -49,7 +49,8 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     num_tasks: int = 10
     """Number of temporally contiguous tasks the trajectory is split into (paper: 10)."""
     test_interval: int = 8
-    """Every test_interval-th frame of each task is held out for evaluation and never trained on."""
+    """Every test_interval-th frame of each task is held out for evaluation and never trained on (a capture whose
+    transforms.json lists test_filenames holds out those instead)."""
     iterations_per_task: int = 1000
     """Training iterations per task; the run has num_tasks x iterations_per_task iterations."""
     seconds_per_task: Optional[float] = None
@@ -222,12 +223,7 @@ class ContinualDataManager(VanillaDataManager):
 
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
-        self.task_split = split_into_tasks(
-            len(outputs.image_filenames),
-            self.config.num_tasks,
-            self.config.test_interval,
-            time_group=outputs.metadata.get("time_group"),
-        )
+        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval)
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
         return ContinualDataset(

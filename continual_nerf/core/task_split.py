@@ -6,7 +6,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 
+from continual_nerf.dataparsers.capture import HELD_OUT
 from continual_nerf.errors import ContinualConfigError
 
 
@@ -39,7 +41,11 @@ class TaskSplit:
 
 
 def split_into_tasks(
-    num_frames: int, num_tasks: int, test_interval: int, time_group: Optional[np.ndarray] = None
+    num_frames: int,
+    num_tasks: int,
+    test_interval: int,
+    time_group: Optional[np.ndarray] = None,
+    held_out: Optional[np.ndarray] = None,
 ) -> TaskSplit:
     """Cut frames 0..num_frames-1 into num_tasks contiguous spans of near-equal length.
 
@@ -47,13 +53,13 @@ def split_into_tasks(
     out for testing, so every task has test frames and every test frame lies in its task's span.
     With `time_group` (frames captured at the same instant by several cameras share a value, in
     capture order), spans and held-out frames are counted in instants: a task holds every camera's
-    images of its time span and a held-out instant is held out in every camera.
+    images of its time span and a held-out instant is held out in every camera. With `held_out`
+    (a flag per frame) the flagged frames are the test frames, and every task needs one.
     """
     if num_frames < 1:
         raise ContinualConfigError("the dataset has no frames: nothing to split into tasks")
     groups = np.arange(num_frames) if time_group is None else np.unique(np.asarray(time_group), return_inverse=True)[1]
     spans = np.array_split(np.arange(groups.max() + 1), num_tasks)
-    train, test = [], []
     for span in spans:
         if len(span) < 2:
             raise ContinualConfigError(
@@ -61,12 +67,34 @@ def split_into_tasks(
                 f"{'' if time_group is None else f' ({groups.max() + 1} instants)'}: "
                 "a task needs at least one training and one test frame"
             )
-        held_out_groups = span[np.arange(len(span)) % test_interval == 0]
+    if held_out is None:
+        tested = np.isin(groups, np.concatenate([span[::test_interval] for span in spans]))
+    else:
+        tested = np.asarray(held_out, dtype=bool)
+    train, test = [], []
+    for task, span in enumerate(spans):
         frames = np.nonzero(np.isin(groups, span))[0]
-        held_out = np.isin(groups[frames], held_out_groups)
-        train.append(frames[~held_out])
-        test.append(frames[held_out])
+        if tested[frames].all() or not tested[frames].any():
+            raise ContinualConfigError(
+                f"--pipeline.datamanager.num-tasks {num_tasks}: task {task + 1} holds "
+                f"{'only' if tested[frames].all() else 'none of the'} frames the capture names for testing "
+                "(test_filenames); every task needs training and test frames: use fewer tasks"
+            )
+        train.append(frames[~tested[frames]])
+        test.append(frames[tested[frames]])
     return TaskSplit(train_frames=tuple(train), test_frames=tuple(test))
+
+
+def split_capture(outputs: DataparserOutputs, num_tasks: int, test_interval: int) -> TaskSplit:
+    """`split_into_tasks` of a dataparser's frames, with the rig instants and test frames its metadata names."""
+    metadata = outputs.metadata
+    return split_into_tasks(
+        len(outputs.image_filenames),
+        num_tasks,
+        test_interval,
+        time_group=metadata.get("time_group"),
+        held_out=metadata.get(HELD_OUT),
+    )
 
 
 def nearest_train_frames(split: TaskSplit, instants: np.ndarray, cameras: np.ndarray) -> np.ndarray:

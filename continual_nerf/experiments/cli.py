@@ -26,7 +26,7 @@ from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.core.task_split import split_into_tasks
+from continual_nerf.core.task_split import split_capture
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError, ContinualNerfError, first_line
 from continual_nerf.experiments import report
@@ -159,9 +159,7 @@ class ExperimentsConfig:
         num_frames = len(outputs.image_filenames)
         for spec in plan.runs():
             try:
-                split_into_tasks(
-                    num_frames, spec.num_tasks, self.test_interval, time_group=outputs.metadata.get("time_group")
-                )
+                split_capture(outputs, spec.num_tasks, self.test_interval)
             except ContinualConfigError as error:
                 option = "--num-tasks" if spec.num_tasks == self.num_tasks else "--task-counts"
                 raise ContinualConfigError(
