@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 from pathlib import Path
 
 import pytest
 
 from continual_nerf.bench.demo_runs import parse_variant
-from continual_nerf.bench.quality import RECIPES, QualityBenchmark, Setting, folder_name
+from continual_nerf.bench.quality import RECIPES, QualityBenchmark, RunSummary, Setting, folder_name
 from continual_nerf.bench.throughput import ThroughputBenchmark
+from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
 
@@ -89,3 +92,28 @@ def test_throughput_refuses_a_variant_named_as_its_own_configuration(tmp_path: P
     benchmark = ThroughputBenchmark(data=tmp_path / "demo", variants=("nerfacto=continual-ngp",))
     with pytest.raises(SystemExit, match="nerfacto: a configuration has that name already"):
         benchmark.configs(tmp_path / "out")
+
+
+def matrix_of(rows: list) -> AccuracyMatrix:
+    matrix = AccuracyMatrix(num_tasks=len(rows))
+    for step, row in enumerate(rows):
+        matrix.add_row(row, [0.9] * len(row), sum(row) / len(row), step)
+    return matrix
+
+
+def test_a_summary_has_each_tasks_psnr_right_after_its_own_training(tmp_path: Path):
+    continual = RunSummary.of(matrix_of([[30.0], [29.0, 32.0], [28.0, 31.0, 26.0]]), train_seconds=1.0)
+    assert continual.after_own_task == pytest.approx((30.0 + 32.0 + 26.0) / 3)
+    assert continual.largest_drop == pytest.approx(2.0) and continual.spread == pytest.approx(5.0)
+    joint = RunSummary.of(matrix_of([[20.0, 21.0], [30.0, 31.0]]), train_seconds=1.0)
+    assert joint.after_own_task is None, "a joint run's tasks all train from the start: no task has its own training"
+
+
+def test_a_summary_written_before_the_diagonal_was_kept_takes_it_from_the_runs_matrix(tmp_path: Path):
+    matrix = matrix_of([[30.0], [29.0, 32.0]])
+    summary = dataclasses.asdict(RunSummary.of(matrix, train_seconds=1.0))
+    del summary["after_own_task"]
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    assert RunSummary.read(tmp_path / "summary.json").after_own_task is None, "no matrix beside it: unknown"
+    matrix.write(tmp_path / "unnamed" / "continual-ngp" / "2026-01-01_000000")
+    assert RunSummary.read(tmp_path / "summary.json").after_own_task == pytest.approx(31.0)

@@ -7,7 +7,8 @@ For every scene (the demo room and the demo street) and every setting (tasks x i
 seconds per task with an `s` suffix: `5x20s`), trains continual-ngp with its defaults, continual-ngp with the
 paper's recipe, continual-ngp with experience replay at 1 % and 5 % of the pixels, iNGP-Incre and the joint bound,
 each through nerfstudio's Trainer, and prints per run: final mean test PSNR, per-task spread of the final row,
-the largest drop of a task from its best, mean SSIM and training seconds. Finished runs are read back, not
+the largest drop of a task from its best, each task's PSNR right after its own training (the mean of the accuracy
+matrix's diagonal: what a task learned before later tasks could take any of it), mean SSIM and training seconds. Finished runs are read back, not
 trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
 `--variants` adds recipes of your own: a registered method with ns-train options, e.g.
 `--variants "table 2^19=continual-ngp --pipeline.model.log2-hashmap-size 19"`.
@@ -111,6 +112,18 @@ class RunSummary:
     """Training iterations of the whole run (fewer with timed tasks where a step costs more)."""
     final_row: List[float]
     """Final test PSNR per task."""
+    after_own_task: Optional[float] = None
+    """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal); None
+    for a joint run, whose tasks all train from the start."""
+
+    @classmethod
+    def read(cls, path: Path) -> "RunSummary":
+        """A run's summary.json; one written before after_own_task existed takes it from the run's accuracy matrix."""
+        saved = json.loads(path.read_text())
+        if "after_own_task" not in saved:
+            matrices = list(path.parent.rglob(ACCURACY_MATRIX_FILENAME))
+            saved["after_own_task"] = after_own_task(AccuracyMatrix.read(matrices[0])) if len(matrices) == 1 else None
+        return cls(**saved)
 
     @classmethod
     def of(cls, matrix: AccuracyMatrix, train_seconds: float) -> "RunSummary":
@@ -124,7 +137,15 @@ class RunSummary:
             train_seconds=train_seconds,
             iterations=matrix.steps[-1] + 1,
             final_row=final,
+            after_own_task=after_own_task(matrix),
         )
+
+
+def after_own_task(matrix: AccuracyMatrix) -> Optional[float]:
+    """The mean of the accuracy matrix's diagonal; None when its first row already measures every task (joint)."""
+    if len(matrix.psnr[0]) > 1:
+        return None
+    return sum(row[-1] for row in matrix.psnr) / len(matrix.psnr)
 
 
 @dataclass
@@ -167,7 +188,7 @@ class QualityBenchmark(DemoBenchmark):
         folder = self.output_dir / "runs" / scene / setting.key / folder_name(name)
         summary_path = folder / "summary.json"
         if summary_path.exists():
-            return RunSummary(**json.loads(summary_path.read_text()))
+            return RunSummary.read(summary_path)
         config = self.config(scene, setting, recipe, folder)
         CONSOLE.print(f"[bold]{scene}, {setting}: training {name}")
         trainer = train_like_ns_train(config)
@@ -207,7 +228,7 @@ def folder_name(recipe: str) -> str:
 
 TABLE_COLUMNS = (
     "recipe", "final mean PSNR (dB)", "vs joint (dB)", "per-task spread (dB)", "largest drop from best (dB)",
-    "mean SSIM", "training s", "iterations",
+    "right after own task (dB)", "mean SSIM", "training s", "iterations",
 )  # fmt: skip
 
 
@@ -215,6 +236,7 @@ def table_row(name: str, run: RunSummary, joint: Optional[RunSummary]) -> List[s
     gap = f"{run.final_mean_psnr - joint.final_mean_psnr:+.2f}" if joint is not None else "n/a"
     return [
         name, f"{run.final_mean_psnr:.2f}", gap, f"{run.spread:.2f}", f"{run.largest_drop:.2f}",
+        "n/a" if run.after_own_task is None else f"{run.after_own_task:.2f}",
         f"{run.mean_ssim:.3f}", f"{run.train_seconds:.0f}", str(run.iterations),
     ]  # fmt: skip
 

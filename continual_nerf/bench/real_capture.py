@@ -145,9 +145,7 @@ class CaptureRun:
     """What the table shows of one run."""
 
     quality: RunSummary
-    """Final PSNR, per-task spread, training time, ..."""
-    after_own_task: float
-    """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal)."""
+    """Final PSNR, per-task spread, PSNR right after each task's own training, training time, ..."""
     poses: Optional[PoseErrors]
     """Training pose errors, for captures with pose errors and for runs that refine poses."""
 
@@ -155,7 +153,9 @@ class CaptureRun:
     def read(cls, path: Path) -> "CaptureRun":
         saved = json.loads(path.read_text())
         poses = saved["poses"] and PoseErrors(**saved["poses"])
-        return cls(quality=RunSummary(**saved["quality"]), after_own_task=saved["after_own_task"], poses=poses)
+        # summaries written before RunSummary had it keep after_own_task beside it
+        quality = RunSummary(**{"after_own_task": saved.get("after_own_task"), **saved["quality"]})
+        return cls(quality=quality, poses=poses)
 
 
 def fitted_onto(poses: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -266,7 +266,6 @@ class RealCaptureBenchmark(DemoBenchmark):
         matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
         run = CaptureRun(
             quality=RunSummary.of(matrix, trainer.pipeline.budget.total_seconds),
-            after_own_task=float(np.mean([row[-1] for row in matrix.psnr])),
             poses=training_pose_errors(trainer, demo) if reports_pose_errors(demo, config) else None,
         )
         write_text_atomically(summary_path, json.dumps(dataclasses.asdict(run), indent=1))
@@ -361,7 +360,7 @@ def table_row(key: str, run: CaptureRun, clean: CaptureRun) -> List[str]:
     translation = "" if poses is None else f"{poses.translation_before:.2f} -> {poses.translation_after:.2f}"
     final = run.quality.final_mean_psnr
     return [
-        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", f"{run.after_own_task:.2f}",
+        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", f"{run.quality.after_own_task:.2f}",
         rotation, translation, f"{run.quality.train_seconds:.0f}",
     ]  # fmt: skip
 
