@@ -27,7 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.per_frame import TRAINING_FRAME, refined_poses
-from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS
+from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS, HELD_OUT
 from continual_nerf.dataparsers.transforms_json import CAMERA_MODEL_OF_TYPE, DISTORTION_KEYS
 from continual_nerf.nerfstudio_compat import without_lpips
 
@@ -47,7 +47,7 @@ def trajectory_poses(datamanager: ContinualDataManager, model: NerfactoModel) ->
 
 def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> Dict[str, Any]:
     """nerfstudio's transforms.json of the trajectory: per frame its image, refined pose, intrinsics and mask; the
-    fisheye frames' crop radius for the whole file, as the capture's transforms.json gave it."""
+    fisheye frames' crop radius and the frames named for testing for the whole file, as the capture's gave them."""
     outputs = datamanager.train_dataparser_outputs
     poses = outputs.transform_poses_to_original_space(trajectory_poses(datamanager, model), camera_convention="opengl")
     cameras = outputs.cameras
@@ -81,6 +81,9 @@ def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> 
     radii = outputs.metadata.get(FISHEYE_CROP_RADIUS)
     if radii is not None:  # one file-wide value, kept by the fisheye frames only (inf on the others)
         meta[FISHEYE_CROP_RADIUS] = float(radii[torch.isfinite(radii)][0])
+    held_out = outputs.metadata.get(HELD_OUT)
+    if held_out is not None:  # the frames the capture named for testing stay test frames when trained on again
+        meta["test_filenames"] = [frame["file_path"] for frame, tested in zip(frames, held_out.tolist()) if tested]
     return meta
 
 

@@ -479,6 +479,13 @@ def test_a_run_tests_on_the_frames_the_capture_lists_for_testing_and_never_train
     assert [path.name for path in datamanager.eval_dataset.image_filenames] == [Path(name).name for name in tested]
     assert not {Path(name).name for name in tested} & {path.name for path in datamanager.train_dataset.image_filenames}
     assert [len(row) for row in pipeline.accuracy.psnr] == [1, 2], "every task measured on its listed frames"
+    exported = transforms_json(datamanager, pipeline.model)  # what continual-nerf-export-poses writes
+    (tmp_path / "exported").mkdir()
+    (tmp_path / "exported" / "transforms.json").write_text(json.dumps(exported))
+    reread = parse(tmp_path / "exported")
+    assert [name for name, tested in zip(names(reread), reread.metadata["held_out"]) if tested] == [
+        Path(name).name for name in tested
+    ], "trained on again, the export tests on the same frames"
 
 
 @pytest.mark.slow
