@@ -8,8 +8,8 @@ seconds per task with an `s` suffix: `5x20s`), trains continual-ngp with its def
 paper's recipe, continual-ngp with experience replay at 1 % and 5 % of the pixels, iNGP-Incre and the joint bound,
 each through nerfstudio's Trainer, and prints per run: final mean test PSNR, per-task spread of the final row,
 the largest drop of a task from its best, each task's PSNR right after its own training (the mean of the accuracy
-matrix's diagonal: what a task learned before later tasks could take any of it), mean SSIM and training seconds. Finished runs are read back, not
-trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
+matrix's diagonal: what a task learned before later tasks could take any of it), mean SSIM and training seconds.
+Finished runs are read back, not trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
 `--variants` adds recipes of your own: a registered method with ns-train options, e.g.
 `--variants "table 2^19=continual-ngp --pipeline.model.log2-hashmap-size 19"`.
 """
@@ -236,9 +236,14 @@ def table_row(name: str, run: RunSummary, joint: Optional[RunSummary]) -> List[s
     gap = f"{run.final_mean_psnr - joint.final_mean_psnr:+.2f}" if joint is not None else "n/a"
     return [
         name, f"{run.final_mean_psnr:.2f}", gap, f"{run.spread:.2f}", f"{run.largest_drop:.2f}",
-        "n/a" if run.after_own_task is None else f"{run.after_own_task:.2f}",
+        decibels(run.after_own_task),
         f"{run.mean_ssim:.3f}", f"{run.train_seconds:.0f}", str(run.iterations),
     ]  # fmt: skip
+
+
+def decibels(value: Optional[float]) -> str:
+    """A table cell of a PSNR that a run may not have."""
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 def markdown(results: Dict[str, Dict[str, Dict[str, dict]]]) -> str:

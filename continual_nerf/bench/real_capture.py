@@ -33,7 +33,7 @@ from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
-from continual_nerf.bench.quality import RunSummary, Setting
+from continual_nerf.bench.quality import RunSummary, Setting, decibels
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModel, ContinualNGPModelConfig
@@ -360,7 +360,7 @@ def table_row(key: str, run: CaptureRun, clean: CaptureRun) -> List[str]:
     translation = "" if poses is None else f"{poses.translation_before:.2f} -> {poses.translation_after:.2f}"
     final = run.quality.final_mean_psnr
     return [
-        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", f"{run.quality.after_own_task:.2f}",
+        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", decibels(run.quality.after_own_task),
         rotation, translation, f"{run.quality.train_seconds:.0f}",
     ]  # fmt: skip
 
