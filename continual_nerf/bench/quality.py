@@ -9,7 +9,8 @@ paper's recipe, continual-ngp with experience replay at 1 % and 5 % of the pixel
 each through nerfstudio's Trainer, and prints per run: final mean test PSNR, per-task spread of the final row,
 the largest drop of a task from its best, each task's PSNR right after its own training (the mean of the accuracy
 matrix's diagonal: what a task learned before later tasks could take any of it), mean SSIM and training seconds.
-Finished runs are read back, not trained again, so an interrupted benchmark resumes. `results.md` in the output folder holds the tables.
+Finished runs are read back, not trained again, so an interrupted benchmark resumes. `results.md` in the output
+folder holds the tables.
 `--variants` adds recipes of your own: a registered method with ns-train options, e.g.
 `--variants "table 2^19=continual-ngp --pipeline.model.log2-hashmap-size 19"`.
 """

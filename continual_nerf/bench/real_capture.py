@@ -360,8 +360,8 @@ def table_row(key: str, run: CaptureRun, clean: CaptureRun) -> List[str]:
     translation = "" if poses is None else f"{poses.translation_before:.2f} -> {poses.translation_after:.2f}"
     final = run.quality.final_mean_psnr
     return [
-        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}", decibels(run.quality.after_own_task),
-        rotation, translation, f"{run.quality.train_seconds:.0f}",
+        capture, feature, f"{final:.2f}", f"{final - clean.quality.final_mean_psnr:+.2f}",
+        decibels(run.quality.after_own_task), rotation, translation, f"{run.quality.train_seconds:.0f}",
     ]  # fmt: skip
 
 
