@@ -181,9 +181,9 @@ def apply_split_lists(meta: Dict[str, Any], listed: List[ListedFrame], path: Pat
     """nerfstudio's split lists in the continual setting: frames in val_filenames or test_filenames are test frames
     and never train; with train_filenames, frames in none of the lists are left out."""
     lists = {key: split_list(meta, key, path) for key in SPLIT_LISTS}
-    listed_names = {os.path.normpath(frame.name) for frame in listed}
+    listed_names = [os.path.normpath(frame.name) for frame in listed]
     for key, names in lists.items():
-        unknown = sorted((names or set()) - listed_names)
+        unknown = sorted((names or set()) - set(listed_names))
         if unknown:
             raise DatasetError(f"{path}: {key} names {unknown[0]}, which is no frame's file_path")
     tested = (lists["val_filenames"] or set()) | (lists["test_filenames"] or set())
@@ -194,11 +194,7 @@ def apply_split_lists(meta: Dict[str, Any], listed: List[ListedFrame], path: Pat
             f"{path}: {both[0]} is in train_filenames and in val_filenames or test_filenames; a test frame never trains"
         )
     kept = set(listed_names) if trained is None else trained | tested
-    return [
-        replace(frame, held_out=os.path.normpath(frame.name) in tested)
-        for frame in listed
-        if os.path.normpath(frame.name) in kept
-    ]
+    return [replace(frame, held_out=name in tested) for frame, name in zip(listed, listed_names) if name in kept]
 
 
 def colmap_model_files(folder: Path) -> Optional[Tuple[Path, Path]]:
