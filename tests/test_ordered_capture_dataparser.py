@@ -317,6 +317,17 @@ def test_test_lists_without_a_train_list_train_every_other_frame(tmp_path):
     )
 
 
+def test_a_task_of_listed_test_frames_only_is_a_one_line_error(tmp_path):
+    tested = [f"images/frame_{number}.png" for number in NUMBERS[:5]]  # every frame of task 1 of 2
+    outputs = parse(write_transforms(tmp_path / "listed", numbered_frames(arc_poses()), test_filenames=tested))
+    with pytest.raises(ContinualConfigError) as raised:
+        split_capture(outputs, 2, test_interval=4)
+    assert str(raised.value) == (
+        "--pipeline.datamanager.num-tasks 2: task 1 holds only frames the capture names for testing "
+        "(test_filenames); every task needs training and test frames: use fewer tasks"
+    )
+
+
 @pytest.mark.parametrize(
     "lists, expected",
     [
