@@ -227,6 +227,9 @@ class RealCaptureBenchmark(DemoBenchmark):
     test_pose_alignment_steps: int = 0
     """--pipeline.test-pose-alignment-steps of every run: each test frame's pose fitted to its image before it is
     measured, for captures whose poses have errors of their own per image; another value, another --output-dir."""
+    color_transform_lr: Optional[float] = None
+    """--optimizers.color-transforms.optimizer.lr of every run that learns colour transforms (unset: continual-ngp's);
+    another value, another --output-dir."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
@@ -293,9 +296,11 @@ class RealCaptureBenchmark(DemoBenchmark):
             **PIPELINE_OPTIONS.get(feature, {}),
         )
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
+            config.optimizers = {**config.optimizers, COLOR_TRANSFORM_GROUP: transforms_at_rate(0.0)}
+        elif self.color_transform_lr is not None:
             config.optimizers = {
                 **config.optimizers,
-                COLOR_TRANSFORM_GROUP: {"optimizer": AdamOptimizerConfig(lr=0.0), "scheduler": None},
+                COLOR_TRANSFORM_GROUP: transforms_at_rate(self.color_transform_lr),
             }
         return config
 
@@ -323,6 +328,11 @@ class RealCaptureBenchmark(DemoBenchmark):
             ]
             lines.append("")
         return "\n".join(lines)
+
+
+def transforms_at_rate(lr: float) -> Dict[str, Any]:
+    """The colour transforms' optimizer group at learning rate `lr` (continual-ngp's Adam otherwise)."""
+    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
 
 
 TABLE_COLUMNS = (
