@@ -20,6 +20,7 @@ from continual_nerf.bench.real_capture import (
     rms_errors,
     train_at_true_exposure,
 )
+from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP
 from continual_nerf.dataparsers import demo_capture
 
 
@@ -70,6 +71,16 @@ def test_every_run_trains_with_the_chosen_seed(tmp_path):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", seed=7)
     demo = bench.demo("room", "clean")
     assert bench.config(demo, "off", tmp_path / "run").machine.seed == 7
+
+
+def test_the_chosen_colour_transform_rate_trains_learned_transforms_only(tmp_path):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", color_transform_lr=3e-3)
+    demo = bench.demo("room", "exposure +-30 %")
+    rate = {
+        feature: bench.config(demo, feature, tmp_path / "run").optimizers[COLOR_TRANSFORM_GROUP] for feature in FEATURES
+    }
+    assert rate["colour transform per image"]["optimizer"].lr == 3e-3
+    assert rate[TRUE_EXPOSURE]["optimizer"].lr == 0.0, "the bound's transforms stay at the recorded gains"
 
 
 @pytest.mark.parametrize("feature", list(FEATURES))
