@@ -26,7 +26,6 @@ import numpy as np
 import torch
 import tyro
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
@@ -296,12 +295,9 @@ class RealCaptureBenchmark(DemoBenchmark):
             **PIPELINE_OPTIONS.get(feature, {}),
         )
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
-            config.optimizers = {**config.optimizers, COLOR_TRANSFORM_GROUP: transforms_at_rate(0.0)}
+            config.optimizers = transforms_at_rate(config.optimizers, 0.0)
         elif self.color_transform_lr is not None:
-            config.optimizers = {
-                **config.optimizers,
-                COLOR_TRANSFORM_GROUP: transforms_at_rate(self.color_transform_lr),
-            }
+            config.optimizers = transforms_at_rate(config.optimizers, self.color_transform_lr)
         return config
 
     def title(self, scene: str) -> str:
@@ -330,9 +326,10 @@ class RealCaptureBenchmark(DemoBenchmark):
         return "\n".join(lines)
 
 
-def transforms_at_rate(lr: float) -> Dict[str, Any]:
-    """The colour transforms' optimizer group at learning rate `lr` (continual-ngp's Adam otherwise)."""
-    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
+def transforms_at_rate(optimizers: Dict[str, Any], lr: float) -> Dict[str, Any]:
+    """`optimizers` with the colour transforms' group at learning rate `lr`, the rest of its optimizer as configured."""
+    group = optimizers[COLOR_TRANSFORM_GROUP]
+    return {**optimizers, COLOR_TRANSFORM_GROUP: {**group, "optimizer": dataclasses.replace(group["optimizer"], lr=lr)}}
 
 
 TABLE_COLUMNS = (
