@@ -226,13 +226,36 @@ def test_a_gain_is_fitted_from_the_pixels_that_agree_not_from_what_the_model_has
     unseen = torch.arange(3000) % 10 < 4  # 40 % of the pixels show what no earlier task saw
     recorded[unseen] = torch.rand(int(unseen.sum()), 3, generator=generator)
     recorded[:100] = 1.0  # clipped: no gain can be read from them
-    rows = torch.arange(3000) % 2
-    rows[-20:] = 2  # too few pixels
-    gains = fit_gains(rendered, recorded, rows)
-    assert set(gains) == {0, 1}, "a row without enough usable pixels keeps its start"
-    assert fit_summary(gains, num_rows=3) == "gains x0.93 to x0.93 fitted to 2 of 3 colour transforms"
-    for gain in gains.values():
+    frames = torch.arange(3000) % 2
+    frames[-20:] = 2  # too few pixels
+    cameras = torch.zeros(3000, dtype=torch.long)
+    cameras[-20:] = 1  # and no other frame of its camera to borrow from
+    fit = fit_gains(rendered, recorded, frames, rows=frames, cameras=cameras)
+    assert set(fit.fitted) == {0, 1} and not fit.borrowed, "a row without enough usable pixels keeps its start"
+    assert fit_summary(fit, num_rows=3) == "gains x0.93 to x0.93 fitted to 2 of 3 colour transforms"
+    for gain in fit.fitted.values():
         torch.testing.assert_close(gain, torch.tensor([0.7, 1.2, 0.9]), atol=0.01, rtol=0)
+
+
+def test_a_frame_that_shows_mostly_new_ground_takes_its_cameras_nearest_fitted_frames_gain():
+    generator = torch.Generator().manual_seed(0)
+    frames = torch.arange(4000) // 500  # eight frames in capture order, two cameras taking turns
+    cameras = frames % 2
+    rendered = 0.1 + 0.6 * torch.rand(4000, 3, generator=generator)
+    gains = torch.tensor([[0.7, 1.2, 0.9], [1.1, 1.0, 0.8]])[cameras]
+    recorded = rendered * gains
+    unseen_share = torch.tensor([0.0, 0.1, 0.2, 0.3, 0.9, 0.9, 0.9, 0.9])[frames]  # later frames move into new ground
+    unseen = torch.rand(4000, generator=generator) < unseen_share
+    # where the model has seen nothing it renders a flat guess: those ratios spread around a wrong gain
+    rendered[unseen] = 0.5
+    recorded[unseen] = 0.2 + 0.4 * torch.rand(int(unseen.sum()), 3, generator=generator)
+    fit = fit_gains(rendered, recorded, frames, rows=frames, cameras=cameras)
+    assert set(fit.fitted) == {0, 1, 2, 3} and set(fit.borrowed) == {4, 5, 6, 7}
+    for frame, gain in fit.gains.items():
+        torch.testing.assert_close(gain, gains[frames == frame][0], atol=0.01, rtol=0)
+    assert fit_summary(fit, num_rows=8).endswith(
+        "fitted to 4 of 8 colour transforms, 4 more take their camera's nearest fitted frame's"
+    )
 
 
 def test_the_open_tasks_colour_transforms_start_at_its_frames_exposure():

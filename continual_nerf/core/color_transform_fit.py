@@ -5,10 +5,15 @@ leaves the new frames' transforms, started at the previous task's, far from thei
 only over many iterations, and meanwhile pulls the field's colours toward the new exposure where earlier tasks saw
 the same surfaces, which replay then has to undo. At the switch the model renders the open task's frames from what
 earlier tasks taught it; a per-channel gain between that render and the frames' pixels, robust to the parts of the
-frames no earlier task saw, starts each transform at its frame's exposure.
+frames no earlier task saw, starts each transform at its frame's exposure. A frame that shows mostly what no earlier
+task saw (the later frames of a task, which move into new ground) gives no such gain: what the model renders there is
+a guess, and its ratios cluster wherever the guess's colour puts them. Such a frame starts at the gain of its camera's
+nearest frame that does.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -27,6 +32,9 @@ LOG_GAIN_BANDWIDTH = 0.05
 """Width of the kernel the mode of the log ratios is found with (about 5 % in gain)."""
 MEAN_SHIFT_STEPS = 20
 """Mean-shift iterations from the median (each moves by less than the kernel's width; 20 settle well within 1 %)."""
+MIN_AGREEMENT = 0.25
+"""Share of a frame's usable pixels, in every channel, within the kernel's width of the frame's gain for the gain to be
+read from the frame: below it the frame shows mostly what no earlier task saw."""
 
 
 def log_gain_mode(log_ratios: Tensor) -> Tensor:
@@ -39,19 +47,76 @@ def log_gain_mode(log_ratios: Tensor) -> Tensor:
     return mode
 
 
-def fit_gains(rendered: Tensor, recorded: Tensor, rows: Tensor) -> dict[int, Tensor]:
-    """Per transform row (`rows`, N, of pixels (N, 3)): the per-channel gain (3,) that takes `rendered` to
-    `recorded`; rows without enough usable pixels in a channel are left out."""
+@dataclass
+class Fit:
+    """The gains transform rows start at: read from the rows' own frames, or borrowed from a nearby frame's."""
+
+    fitted: dict[int, Tensor] = field(default_factory=dict)
+    """Gain (3,) by row, read from the row's own frames."""
+    borrowed: dict[int, Tensor] = field(default_factory=dict)
+    """Gain (3,) by row, that of its camera's nearest fitted frame."""
+
+    @property
+    def gains(self) -> dict[int, Tensor]:
+        return {**self.fitted, **self.borrowed}
+
+
+def usable_log_ratios(rendered: Tensor, recorded: Tensor) -> tuple[Tensor, Tensor]:
+    """Log of `recorded` over `rendered` (N, 3) and which of them a gain can be read from (N, 3)."""
     low, high = USABLE_RANGE
     usable = (rendered > low) & (rendered < high) & (recorded > low) & (recorded < high)
-    log_ratios = torch.log(recorded.clamp_min(low)) - torch.log(rendered.clamp_min(low))
-    gains: dict[int, Tensor] = {}
+    return torch.log(recorded.clamp_min(low)) - torch.log(rendered.clamp_min(low)), usable
+
+
+def gain_of(log_ratios: Tensor, pixels: Tensor) -> tuple[Tensor, float] | None:
+    """The per-channel gain (3,) of `pixels` (N, 3 usable) and the least share of a channel's pixels that agree with
+    it; None if a channel has too few."""
+    if int(pixels.sum(dim=0).min()) < MIN_PIXELS:
+        return None
+    modes = [log_gain_mode(log_ratios[pixels[:, c], c]) for c in range(3)]
+    agreement = min(
+        float(((log_ratios[pixels[:, c], c] - modes[c]).abs() < LOG_GAIN_BANDWIDTH).float().mean()) for c in range(3)
+    )
+    return torch.stack(modes).exp(), agreement
+
+
+def frames_that_show_the_gain(log_ratios: Tensor, usable: Tensor, frames: Tensor) -> Tensor:
+    """The frames among `frames` (N,) whose pixels agree on a gain (MIN_AGREEMENT)."""
+    agreeing = []
+    for frame in frames.unique().tolist():
+        read = gain_of(log_ratios, (frames == frame)[:, None] & usable)
+        if read is not None and read[1] >= MIN_AGREEMENT:
+            agreeing.append(frame)
+    return torch.tensor(agreeing, dtype=torch.long)
+
+
+def fit_gains(rendered: Tensor, recorded: Tensor, frames: Tensor, rows: Tensor, cameras: Tensor) -> Fit:
+    """Per transform row (of pixels (N, 3) of `frames`, `rows` and `cameras`, N each): the per-channel gain (3,) that
+    takes `rendered` to `recorded`, read from the row's frames whose pixels agree on one; a row without such a frame
+    takes the gain of its camera's frame nearest in time that has one, and without any keeps its start."""
+    log_ratios, usable = usable_log_ratios(rendered, recorded)
+    agreeing = frames_that_show_the_gain(log_ratios, usable, frames)
+    fit = Fit()
     for row in rows.unique().tolist():
-        in_row = (rows == row)[:, None] & usable
-        if int(in_row.sum(dim=0).min()) < MIN_PIXELS:
-            continue
-        gains[row] = torch.stack([log_gain_mode(log_ratios[in_row[:, c], c]) for c in range(3)]).exp()
-    return gains
+        read = gain_of(log_ratios, ((rows == row) & torch.isin(frames, agreeing))[:, None] & usable)
+        if read is not None:
+            fit.fitted[row] = read[0]
+    for row in rows.unique().tolist():
+        if row not in fit.fitted and (nearest := nearest_agreeing_row(row, frames, rows, cameras, fit)) is not None:
+            fit.borrowed[row] = fit.fitted[nearest]
+    return fit
+
+
+def nearest_agreeing_row(row: int, frames: Tensor, rows: Tensor, cameras: Tensor, fit: Fit) -> int | None:
+    """The fitted row of the frame nearest in time (training frames are numbered in capture order) to `row`'s first
+    frame among its camera's fitted frames; None if its camera has none."""
+    first = int(frames[rows == row].min())
+    camera = cameras[rows == row][0]
+    candidates = (cameras == camera) & torch.isin(rows, torch.tensor(list(fit.fitted), dtype=torch.long))
+    if not candidates.any():
+        return None
+    nearest = int((frames[candidates] - first).abs().argmin())
+    return int(rows[candidates][nearest])
 
 
 @torch.no_grad()
@@ -88,16 +153,19 @@ def fit_open_task_color_transforms(model: ContinualNGPModel, datamanager: Contin
     transforms = model.color_transforms
     assert transforms is not None, "the model has colour transforms"
     rendered, recorded, frames = render_open_task_pixels(model, datamanager)
-    rows = transforms.code_of_frame[frames]
-    gains = fit_gains(rendered, recorded, rows)
-    for row, gain in gains.items():
+    rows, cameras = transforms.code_of_frame.cpu()[frames], model.camera_of_frame.cpu()[frames]
+    fit = fit_gains(rendered, recorded, frames, rows, cameras)
+    for row, gain in fit.gains.items():
         transforms.transforms[row] = gain.to(transforms.transforms.device)[:, None] * transforms.transforms[row]
-    return fit_summary(gains, num_rows=len(rows.unique()))
+    return fit_summary(fit, num_rows=len(rows.unique()))
 
 
-def fit_summary(gains: dict[int, Tensor], num_rows: int) -> str:
-    """E.g. "gains x0.71 to x0.78 fitted to 24 of 24 colour transforms" (the mean over channels of each)."""
-    if not gains:
-        return f"no colour transform fitted: too few usable pixels in all {num_rows}"
-    means = torch.stack(list(gains.values())).mean(dim=1)
-    return f"gains x{means.min():.2f} to x{means.max():.2f} fitted to {len(gains)} of {num_rows} colour transforms"
+def fit_summary(fit: Fit, num_rows: int) -> str:
+    """E.g. "gains x0.71 to x0.78 fitted to 9 of 24 colour transforms, 15 more take their camera's nearest fitted
+    frame's" (the mean over channels of each)."""
+    if not fit.fitted:
+        return f"no colour transform fitted: too few pixels agree on a gain in all {num_rows}"
+    means = torch.stack(list(fit.gains.values())).mean(dim=1)
+    borrowed = f", {len(fit.borrowed)} more take their camera's nearest fitted frame's" if fit.borrowed else ""
+    fitted = f"fitted to {len(fit.fitted)} of {num_rows} colour transforms"
+    return f"gains x{means.min():.2f} to x{means.max():.2f} {fitted}{borrowed}"
