@@ -70,7 +70,8 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     group, learned while its task is open, frozen when it closes; the field keeps one colour for all; off: the paper."""
     color_transform_start: Literal["previous-task", "fitted"] = "fitted"
     """Where the open task's colour transforms start: the previous task's (same camera), or those times a per-channel
-    gain fitted between the model's render of the task's frames and their pixels (an exposure jump at the switch)."""
+    gain fitted between the model's render of the task's frames and their pixels (an exposure jump at the switch); a
+    frame showing mostly what no earlier task saw takes its camera's nearest fitted frame's gain."""
     appearance_codes: AppearanceGroups = "image"
     """What one appearance code or colour transform covers: one training image, or every image one camera took in
     one task."""
