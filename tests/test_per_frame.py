@@ -254,7 +254,7 @@ def test_a_frame_that_shows_mostly_new_ground_takes_its_cameras_nearest_fitted_f
     for frame, gain in fit.gains.items():
         torch.testing.assert_close(gain, gains[frames == frame][0], atol=0.01, rtol=0)
     assert fit_summary(fit, num_rows=8).endswith(
-        "fitted to 4 of 8 colour transforms, 4 more take their camera's nearest fitted frame's"
+        "fitted to 4 of 8 colour transforms, 4 more from their camera's nearest fitted frame"
     )
 
 

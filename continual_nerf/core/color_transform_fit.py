@@ -161,11 +161,11 @@ def fit_open_task_color_transforms(model: ContinualNGPModel, datamanager: Contin
 
 
 def fit_summary(fit: Fit, num_rows: int) -> str:
-    """E.g. "gains x0.71 to x0.78 fitted to 9 of 24 colour transforms, 15 more take their camera's nearest fitted
-    frame's" (the mean over channels of each)."""
+    """E.g. "gains x0.71 to x0.78 fitted to 9 of 24 colour transforms, 15 more from their camera's nearest fitted
+    frame" (the mean over channels of each)."""
     if not fit.fitted:
         return f"no colour transform fitted: too few pixels agree on a gain in all {num_rows}"
     means = torch.stack(list(fit.gains.values())).mean(dim=1)
-    borrowed = f", {len(fit.borrowed)} more take their camera's nearest fitted frame's" if fit.borrowed else ""
+    borrowed = f", {len(fit.borrowed)} more from their camera's nearest fitted frame" if fit.borrowed else ""
     fitted = f"fitted to {len(fit.fitted)} of {num_rows} colour transforms"
     return f"gains x{means.min():.2f} to x{means.max():.2f} {fitted}{borrowed}"
