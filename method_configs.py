@@ -44,8 +44,9 @@ CONTINUAL_NGP = ContinualTrainerConfig(
         "fields": _adam(),
         # pose corrections (--pipeline.model.camera-optimizer.mode): nerfacto's rate, constant as the others
         "camera_opt": {"optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15), "scheduler": None},
-        # colour transforms (--pipeline.model.use-color-transform)
-        COLOR_TRANSFORM_GROUP: {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": None},
+        # colour transforms (--pipeline.model.use-color-transform): slower than the fields, since the fit at each task
+        # switch starts them near their frames' exposure and a faster rate trades them off against the field's colour
+        COLOR_TRANSFORM_GROUP: {"optimizer": AdamOptimizerConfig(lr=3e-3, eps=1e-15), "scheduler": None},
     },
     viewer=ContinualViewerConfig(),
     vis="viewer",
