@@ -20,8 +20,10 @@ from continual_nerf.bench.real_capture import (
     rms_errors,
     train_at_true_exposure,
 )
+from continual_nerf.core.continual_pipeline import POSE_GROUP
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP
 from continual_nerf.dataparsers import demo_capture
+from continual_nerf.method_configs import CONTINUAL_NGP
 
 
 def trajectory(count: int = 30) -> np.ndarray:
@@ -81,6 +83,13 @@ def test_the_chosen_colour_transform_rate_trains_learned_transforms_only(tmp_pat
     }
     assert rate["colour transform per image"]["optimizer"].lr == 1e-3
     assert rate[TRUE_EXPOSURE]["optimizer"].lr == 0.0, "the bound's transforms stay at the recorded gains"
+
+
+def test_the_chosen_pose_rate_trains_the_pose_corrections(tmp_path):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr=3e-4)
+    config = bench.config(bench.demo("room", "poses off 1 deg, 1 %"), "pose refinement", tmp_path / "run")
+    assert config.optimizers[POSE_GROUP]["optimizer"].lr == 3e-4
+    assert config.optimizers["fields"]["optimizer"].lr == CONTINUAL_NGP.optimizers["fields"]["optimizer"].lr
 
 
 @pytest.mark.parametrize("feature", list(FEATURES))

@@ -34,6 +34,7 @@ from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names
 from continual_nerf.bench.quality import RunSummary, Setting, decibels
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_pipeline import POSE_GROUP
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.per_frame import refined_poses
@@ -229,6 +230,9 @@ class RealCaptureBenchmark(DemoBenchmark):
     color_transform_lr: Optional[float] = None
     """--optimizers.color-transforms.optimizer.lr of every run that learns colour transforms (unset: continual-ngp's);
     another value, another --output-dir."""
+    pose_lr: Optional[float] = None
+    """--optimizers.camera-opt.optimizer.lr of every run that refines poses (unset: continual-ngp's); another value,
+    another --output-dir."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
@@ -295,9 +299,11 @@ class RealCaptureBenchmark(DemoBenchmark):
             **PIPELINE_OPTIONS.get(feature, {}),
         )
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
-            config.optimizers = transforms_at_rate(config.optimizers, 0.0)
+            config.optimizers = group_at_rate(config.optimizers, COLOR_TRANSFORM_GROUP, 0.0)
         elif self.color_transform_lr is not None:
-            config.optimizers = transforms_at_rate(config.optimizers, self.color_transform_lr)
+            config.optimizers = group_at_rate(config.optimizers, COLOR_TRANSFORM_GROUP, self.color_transform_lr)
+        if self.pose_lr is not None:
+            config.optimizers = group_at_rate(config.optimizers, POSE_GROUP, self.pose_lr)
         return config
 
     def title(self, scene: str) -> str:
@@ -326,10 +332,10 @@ class RealCaptureBenchmark(DemoBenchmark):
         return "\n".join(lines)
 
 
-def transforms_at_rate(optimizers: Dict[str, Any], lr: float) -> Dict[str, Any]:
-    """`optimizers` with the colour transforms' group at learning rate `lr`, the rest of its optimizer as configured."""
-    group = optimizers[COLOR_TRANSFORM_GROUP]
-    return {**optimizers, COLOR_TRANSFORM_GROUP: {**group, "optimizer": dataclasses.replace(group["optimizer"], lr=lr)}}
+def group_at_rate(optimizers: Dict[str, Any], name: str, lr: float) -> Dict[str, Any]:
+    """`optimizers` with parameter group `name` at learning rate `lr`, the rest of its optimizer as configured."""
+    group = optimizers[name]
+    return {**optimizers, name: {**group, "optimizer": dataclasses.replace(group["optimizer"], lr=lr)}}
 
 
 TABLE_COLUMNS = (
