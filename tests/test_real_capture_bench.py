@@ -86,9 +86,9 @@ def test_the_chosen_colour_transform_rate_trains_learned_transforms_only(tmp_pat
 
 
 def test_the_chosen_pose_rate_trains_the_pose_corrections(tmp_path):
-    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr=3e-4)
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr=1e-4)
     config = bench.config(bench.demo("room", "poses off 1 deg, 1 %"), "pose refinement", tmp_path / "run")
-    assert config.optimizers[POSE_GROUP]["optimizer"].lr == 3e-4
+    assert config.optimizers[POSE_GROUP]["optimizer"].lr == 1e-4
     assert config.optimizers["fields"]["optimizer"].lr == CONTINUAL_NGP.optimizers["fields"]["optimizer"].lr
 
 
