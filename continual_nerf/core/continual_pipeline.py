@@ -57,7 +57,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     rate falls from the task's start)."""
     pose_lr_decay_per_task: float = 0.1
     """Factor the pose corrections' learning rate (--pipeline.model.camera-optimizer.mode) falls to over each task's
-    budget instead: a task's frames refine anew, from the configured rate (3e-4) down to a tenth; 1 keeps it constant."""
+    budget instead: a task's frames refine anew, from --optimizers.camera-opt.optimizer.lr down to a tenth of it; 1 keeps
+    it constant."""
     pose_refinement_start: float = 0.0
     """Share of each task's budget before its frames' pose corrections start to learn (their rate then falls over the
     rest of the task): the field first learns what the new frames show, so that the corrections do not chase it."""
