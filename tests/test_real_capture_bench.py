@@ -92,6 +92,17 @@ def test_the_chosen_pose_rate_trains_the_pose_corrections(tmp_path):
     assert config.optimizers["fields"]["optimizer"].lr == CONTINUAL_NGP.optimizers["fields"]["optimizer"].lr
 
 
+def test_the_chosen_pose_rate_decay_sets_the_pipeline_option(tmp_path):
+    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr_decay_per_task=1.0)
+    config = bench.config(bench.demo("room", "poses off 1 deg, 1 %"), "pose refinement from mid-task", tmp_path / "run")
+    assert config.pipeline.pose_lr_decay_per_task == 1.0
+    assert (
+        config.pipeline.pose_refinement_start
+        == PIPELINE_OPTIONS["pose refinement from mid-task"]["pose_refinement_start"]
+    )
+    assert CONTINUAL_NGP.pipeline.pose_lr_decay_per_task != 1.0, "the option changed something"
+
+
 @pytest.mark.parametrize("feature", list(FEATURES))
 def test_every_feature_sets_model_and_pipeline_options_the_run_validates(tmp_path, feature):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")

@@ -233,6 +233,9 @@ class RealCaptureBenchmark(DemoBenchmark):
     pose_lr: Optional[float] = None
     """--optimizers.camera-opt.optimizer.lr of every run that refines poses (unset: continual-ngp's); another value,
     another --output-dir."""
+    pose_lr_decay_per_task: Optional[float] = None
+    """--pipeline.pose-lr-decay-per-task of every run that refines poses (unset: continual-ngp's); another value,
+    another --output-dir."""
     output_dir: Path = Path("outputs/bench-real-capture")
     """Runs, results.json and results.md; finished runs found here are not trained again."""
 
@@ -298,6 +301,8 @@ class RealCaptureBenchmark(DemoBenchmark):
             test_pose_alignment_steps=self.test_pose_alignment_steps,
             **PIPELINE_OPTIONS.get(feature, {}),
         )
+        if self.pose_lr_decay_per_task is not None:
+            config.pipeline.pose_lr_decay_per_task = self.pose_lr_decay_per_task
         if feature == TRUE_EXPOSURE:  # the transforms are given, not learned
             config.optimizers = group_at_rate(config.optimizers, COLOR_TRANSFORM_GROUP, 0.0)
         elif self.color_transform_lr is not None:
