@@ -117,3 +117,8 @@ def test_a_summary_written_before_the_diagonal_was_kept_takes_it_from_the_runs_m
     assert RunSummary.read(tmp_path / "summary.json").after_own_task is None, "no matrix beside it: unknown"
     matrix.write(tmp_path / "unnamed" / "continual-ngp" / "2026-01-01_000000")
     assert RunSummary.read(tmp_path / "summary.json").after_own_task == pytest.approx(31.0)
+
+
+@pytest.mark.parametrize(("text", "title"), [("1x1200", "1 task x 1200 iterations"), ("5x20s", "5 tasks x 20 s")])
+def test_a_setting_titles_its_tables_in_words(text: str, title: str):
+    assert str(Setting.parse(text)) == title

@@ -86,7 +86,7 @@ class Setting:
 
     def __str__(self) -> str:
         budget = f"{self.seconds:g} s" if self.seconds is not None else f"{self.iterations} iterations"
-        return f"{self.num_tasks} tasks x {budget}"
+        return f"{self.num_tasks} {'task' if self.num_tasks == 1 else 'tasks'} x {budget}"
 
     @property
     def key(self) -> str:
