@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import re
 from pathlib import Path
 
 import pytest
+import torch
 
 from continual_nerf.bench.demo_runs import parse_variant
 from continual_nerf.bench.quality import RECIPES, QualityBenchmark, RunSummary, Setting, folder_name
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
 
@@ -122,3 +125,16 @@ def test_a_summary_written_before_the_diagonal_was_kept_takes_it_from_the_runs_m
 @pytest.mark.parametrize(("text", "title"), [("1x1200", "1 task x 1200 iterations"), ("5x20s", "5 tasks x 20 s")])
 def test_a_setting_titles_its_tables_in_words(text: str, title: str):
     assert str(Setting.parse(text)) == title
+
+
+def test_every_pixel_kept_replays_every_closed_tasks_pixels_and_nothing_the_oracle_renders():
+    config, variant = RECIPES["every pixel kept"]
+    assert variant is not None
+    datamanager = variant(copy.deepcopy(config)).pipeline.datamanager
+    assert datamanager.replay_buffer_share == 1.0
+    buffer = ExperienceReplayBuffer(datamanager.replay_buffer_size)
+    flat, rgb = torch.arange(10_000), torch.rand(10_000, 3)
+    buffer.add_task(0, flat, rgb, total_pixels=30_000)
+    buffer.add_task(1, flat + 10_000, rgb, total_pixels=30_000)
+    assert buffer.tasks_held() == {0: 10_000, 1: 10_000}, "two closed tasks, all of their pixels"
+    assert config.pipeline.datamanager.replay_buffer_size == 0, "the registered method keeps no pixel"
