@@ -41,9 +41,13 @@ Variant = Callable[[ContinualTrainerConfig], ContinualTrainerConfig]
 Recipe = Tuple[ContinualTrainerConfig, Optional[Variant]]
 
 
-def _with_buffer(fraction: float) -> Variant:
+def _with_buffer(size: float, **options: float) -> Variant:
+    """Experience replay of `size` pixels (a fraction below 1, else a count), with other datamanager `options`."""
+
     def variant(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
-        config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, replay_buffer_size=fraction)
+        config.pipeline.datamanager = dataclasses.replace(
+            config.pipeline.datamanager, replay_buffer_size=size, **options
+        )
         return config
 
     return variant
@@ -51,14 +55,6 @@ def _with_buffer(fraction: float) -> Variant:
 
 EVERY_PIXEL = 1e9
 """A replay buffer size (a count of pixels) above any capture's: the buffer keeps every pixel of every closed task."""
-
-
-def _with_every_pixel_kept(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
-    """Experience replay of every closed task's every pixel, and of nothing the oracle renders."""
-    config.pipeline.datamanager = dataclasses.replace(
-        config.pipeline.datamanager, replay_buffer_size=EVERY_PIXEL, replay_buffer_share=1.0
-    )
-    return config
 
 
 def _learning_rates_of(source: ContinualTrainerConfig) -> Variant:
@@ -76,7 +72,7 @@ RECIPES: Dict[str, Recipe] = {
     "continual-ngp, ER 1 %": (CONTINUAL_NGP, _with_buffer(0.01)),
     "continual-ngp, ER 5 %": (CONTINUAL_NGP, _with_buffer(0.05)),
     # keeps what the continual setting forbids keeping: how far the tasks' arrival alone leaves a run from the bound
-    "every pixel kept": (CONTINUAL_NGP, _with_every_pixel_kept),
+    "every pixel kept": (CONTINUAL_NGP, _with_buffer(EVERY_PIXEL, replay_buffer_share=1.0)),
     "iNGP-Incre": (CONTINUAL_NGP_INCRE, None),
     # the bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter too
     "joint (upper bound)": (CONTINUAL_NGP_JOINT, _learning_rates_of(CONTINUAL_NGP)),
