@@ -14,14 +14,15 @@ from continual_nerf.bench.real_capture import (
     TRUE_EXPOSURE,
     RealCaptureBenchmark,
     fitted_onto,
+    hold_true_exposure,
     recipe,
     reports_pose_errors,
     rms_errors,
-    train_at_true_exposure,
 )
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP
 from continual_nerf.dataparsers import demo_capture
 from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.recipes import set_up_like_ns_train
 
 
 def config_of(bench: RealCaptureBenchmark, capture: str, feature: str, scene: str = "room"):
@@ -111,7 +112,10 @@ def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_wit
     config = config_of(bench, "exposure +-30 %", TRUE_EXPOSURE)
     exposed = config.pipeline.datamanager.dataparser
     assert exposed.exposure_segments == 2
-    trainer = train_at_true_exposure(config)
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    hold_true_exposure(trainer)
+    trainer.train()
     transforms = trainer.pipeline.model.color_transforms.transforms.detach()
     assert torch.equal(transforms[:, :, 3], torch.zeros(len(transforms), 3)), "gains, no offsets"
     gains = transforms[:, :, :3].diagonal(dim1=1, dim2=2)

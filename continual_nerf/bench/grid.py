@@ -21,14 +21,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, recipe_config
+from continual_nerf.bench.memory import MIB, peak_resident_bytes
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.recipes import quiet_config, train_like_ns_train
+from continual_nerf.recipes import quiet_config, set_up_like_ns_train
 
 DEMO = "continual-demo"
 """The dataparser subcommand a recipe may end with, followed by the demo's options."""
@@ -64,8 +66,9 @@ class Setting:
         )
 
 
-Train = Callable[[ContinualTrainerConfig], ContinualTrainer]
-"""How a recipe trains its config (nerfstudio's Trainer unless a recipe needs more)."""
+Prepare = Callable[[ContinualTrainer], None]
+"""What a recipe does to its set-up trainer before training (functions of a module: runs train in processes of their
+own)."""
 Measure = Callable[[ContinualTrainer], Dict[str, float]]
 """What a recipe measures of its trained run beyond the accuracy matrix."""
 
@@ -78,15 +81,16 @@ class Recipe:
     """The name its table rows give it."""
     arguments: Tuple[str, ...]
     """METHOD [OPTIONS] [continual-demo OPTIONS], as after `ns-train`."""
-    train: Optional[Train] = None
-    """Trains the config instead of nerfstudio's Trainer as ns-train runs it (functions of a module: runs may train
-    in other processes)."""
+    prepare: Optional[Prepare] = None
+    """Changes the set-up trainer before it trains, where nerfstudio's options cannot say it."""
     measure: Optional[Measure] = None
     """Numbers of the trained run kept beside its summary."""
 
     @classmethod
-    def of(cls, name: str, command: str, train: Optional[Train] = None, measure: Optional[Measure] = None) -> "Recipe":
-        return cls(name, tuple(shlex.split(command)), train, measure)
+    def of(
+        cls, name: str, command: str, prepare: Optional[Prepare] = None, measure: Optional[Measure] = None
+    ) -> "Recipe":
+        return cls(name, tuple(shlex.split(command)), prepare, measure)
 
 
 def parse_recipe(text: str) -> Recipe:
@@ -145,6 +149,10 @@ class RunSummary:
     after_own_task: Optional[float]
     """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal); None
     for a joint run, whose tasks all train from the start."""
+    seconds_per_task: List[float] = field(default_factory=list)
+    """Training seconds of each task (the pipeline's clock: training iterations only)."""
+    peak_mib_per_task: List[float] = field(default_factory=list)
+    """Peak resident memory of the run's process by the end of each task, MiB."""
     extras: Dict[str, float] = field(default_factory=dict)
     """What the recipe measured beyond the accuracy matrix (pose errors, ...)."""
     commit: str = "unknown"
@@ -152,7 +160,11 @@ class RunSummary:
 
     @classmethod
     def of(
-        cls, matrix: AccuracyMatrix, train_seconds: float, extras: Optional[Dict[str, float]] = None
+        cls,
+        matrix: AccuracyMatrix,
+        train_seconds: float,
+        tasks: Optional["TaskRecord"] = None,
+        extras: Optional[Dict[str, float]] = None,
     ) -> "RunSummary":
         final = matrix.psnr[-1]
         best = [max(row[j] for row in matrix.psnr if len(row) > j) for j in range(len(final))]
@@ -165,6 +177,8 @@ class RunSummary:
             iterations=matrix.steps[-1] + 1,
             final_row=final,
             after_own_task=after_own_task(matrix),
+            seconds_per_task=list(tasks.seconds) if tasks is not None else [],
+            peak_mib_per_task=list(tasks.peak_mib) if tasks is not None else [],
             extras=dict(extras or {}),
             commit=source_commit(),
         )
@@ -259,15 +273,14 @@ class Grid(DemoBenchmark):
         return config
 
     def summaries(self, runs: Sequence[Run]) -> List[RunSummary]:
-        """Every run's summary: read back where it finished before, trained (`--jobs` at once) otherwise."""
+        """Every run's summary: read back where it finished before, trained otherwise, each in a fresh process of its
+        own (`--jobs` at once), so that its memory is its own."""
         pending = [run for run in runs if finished(run) is None]
         configs = [self.config(run) for run in pending]  # every recipe is checked before anything trains
-        if self.jobs > 1 and len(pending) > 1:
-            with ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        if pending:
+            context = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(self.jobs, mp_context=context, max_tasks_per_child=1) as pool:
                 list(pool.map(train_run, pending, configs))
-        else:
-            for run, config in zip(pending, configs):
-                train_run(run, config)
         return [read_summary(run) for run in runs]
 
 
@@ -288,13 +301,36 @@ def read_summary(run: Run) -> RunSummary:
     return RunSummary(**saved["summary"])
 
 
+class TaskRecord:
+    """Each task's training seconds and the process's peak memory by its end, recorded as the run trains."""
+
+    def __init__(self, trainer: ContinualTrainer) -> None:
+        self.pipeline = trainer.pipeline
+        self.seconds: List[float] = []
+        self.peak_mib: List[float] = []
+        self._seconds_before = 0.0
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step))
+
+    def after_step(self, step: int) -> None:
+        """After the pipeline's own callbacks: a task that ended at this step has its row in the accuracy matrix."""
+        if len(self.pipeline.accuracy.psnr) > len(self.seconds):
+            total = self.pipeline.budget.total_seconds
+            self.seconds.append(total - self._seconds_before)
+            self._seconds_before = total
+            self.peak_mib.append(peak_resident_bytes() / MIB)
+
+
 def train_run(run: Run, config: ContinualTrainerConfig) -> None:
-    """Train one run and write its summary (in this process or a worker of its own)."""
+    """Train one run in this process, as ns-train does, and write its summary."""
     CONSOLE.print(f"[bold]{run.scene}, {run.setting}: training {run.recipe.name}")
-    train = run.recipe.train or train_like_ns_train
-    trainer = train(config)
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    tasks = TaskRecord(trainer)
+    if run.recipe.prepare is not None:
+        run.recipe.prepare(trainer)
+    trainer.train()
     matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     extras = run.recipe.measure(trainer) if run.recipe.measure is not None else {}
-    summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, extras)
+    summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, tasks, extras)
     saved = {"arguments": list(run.arguments), "summary": dataclasses.asdict(summary)}
     write_text_atomically(run.summary_path, json.dumps(saved, indent=1))

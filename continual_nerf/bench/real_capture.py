@@ -40,7 +40,6 @@ from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPMod
 from continual_nerf.core.per_frame import refined_poses
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.demo_capture import pose_errors, trajectory_length
-from continual_nerf.recipes import set_up_like_ns_train
 
 Scene = Literal["room", "street"]
 
@@ -183,22 +182,18 @@ def _keep_rows(task: int, tasks: torch.Tensor, cameras: torch.Tensor) -> None:
     """A task switch leaves the transforms as they are."""
 
 
-def train_at_true_exposure(config: ContinualTrainerConfig) -> ContinualTrainer:
-    """Train with every training frame's colour transform at the gains the demo recorded the frame with (exposure and
-    white balance; a clipped pixel stays clipped), held there for the whole run."""
-    config.save_config()
-    trainer = set_up_like_ns_train(config)
+def hold_true_exposure(trainer: ContinualTrainer) -> None:
+    """Hold every training frame's colour transform at the gains the demo recorded the frame with (exposure and white
+    balance; a clipped pixel stays clipped) for the whole run."""
     model, datamanager = trainer.pipeline.model, trainer.pipeline.datamanager
     assert isinstance(model, ContinualNGPModel) and model.color_transforms is not None
-    parser = demo_of(config).setup()
+    parser = demo_of(trainer.config).setup()
     gains = torch.as_tensor(parser.frame_gains(parser.capture()), dtype=torch.float32)
     frames = torch.as_tensor(datamanager.task_split.all_train_frames())
     with torch.no_grad():
         model.color_transforms.transforms.copy_(torch.diag_embed(gains[frames]) @ torch.eye(3, 4))
     model.color_transforms.start_task = _keep_rows
     model.open_task(datamanager.data_task, start=False)  # rows outside the open task are restored to these
-    trainer.train()
-    return trainer
 
 
 def recipe(capture: str, feature: str) -> Recipe:
@@ -206,7 +201,7 @@ def recipe(capture: str, feature: str) -> Recipe:
     return Recipe.of(
         f"{capture} | {feature}",
         f"continual-ngp {FEATURES[feature]} {DEMO} {CAPTURES[capture]}",
-        train=train_at_true_exposure if feature == TRUE_EXPOSURE else None,
+        prepare=hold_true_exposure if feature == TRUE_EXPOSURE else None,
         measure=training_pose_errors,
     )
 
