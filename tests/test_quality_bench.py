@@ -8,12 +8,14 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from helpers import DEMO_CACHE
+from PIL import Image
 
 from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
-from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark
+from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_against_tasks, total
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
@@ -208,3 +210,18 @@ def test_a_tiny_grid_trains_two_recipes_in_two_processes_and_writes_its_tables(t
     assert len(saved["seconds_per_task"]) == 2 and all(seconds > 0 for seconds in saved["seconds_per_task"])
     peaks = saved["peak_mib_per_task"]
     assert len(peaks) == 2 and 0 < peaks[0] <= peaks[1], "each run's own process: its peak, task by task"
+
+
+def test_a_sweep_over_task_counts_is_plotted_one_line_per_recipe_and_budget(tmp_path: Path):
+    def run(psnr: float) -> RunSummary:
+        return dataclasses.replace(RunSummary.of(matrix_of([[psnr]]), train_seconds=1.0), final_mean_psnr=psnr)
+
+    results = {
+        scene: {key: {"a": run(30.0 - tasks), JOINT: run(31.0)} for key, tasks in (("2x3", 2), ("4x3", 4), ("8x3", 8))}
+        for scene in ("room", "street")
+    }
+    plot_against_tasks(results, tmp_path / "plot.png")
+    image = Image.open(tmp_path / "plot.png")
+    assert image.size[0] > image.size[1] > 100, "two panels side by side"
+    assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 20, "lines drawn, not blank"
+    assert total(Setting.parse("4x3")) == "12 iterations" and total(Setting.parse("4x2.5s")) == "10 s"

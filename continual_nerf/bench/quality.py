@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Dict, List, Literal, Mapping, Optional, Tuple
 
 import tyro
+from matplotlib.figure import Figure
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
@@ -106,7 +107,8 @@ class QualityBenchmark(Grid):
 
 TABLE_COLUMNS = (
     "recipe", "final mean PSNR (dB)", "vs joint (dB)", "per-task spread (dB)", "largest drop from best (dB)",
-    "right after own task (dB)", "mean SSIM", "training s", "iterations",
+    "right after own task (dB)", "mean SSIM", "training s", "iterations", "s per task, first -> last",
+    "peak MiB, first -> last task",
 )  # fmt: skip
 
 
@@ -115,7 +117,45 @@ def table_row(name: str, run: RunSummary, joint: Optional[RunSummary]) -> List[s
     return [
         name, f"{run.final_mean_psnr:.2f}", gap, f"{run.spread:.2f}", f"{run.largest_drop:.2f}",
         decibels(run.after_own_task), f"{run.mean_ssim:.3f}", f"{run.train_seconds:.0f}", str(run.iterations),
+        first_to_last(run.seconds_per_task, "{:.1f}"), first_to_last(run.peak_mib_per_task, "{:.0f}"),
     ]  # fmt: skip
+
+
+def first_to_last(values: List[float], form: str) -> str:
+    """A per-task quantity's first and last value (n/a for runs measured before it was recorded)."""
+    return f"{form.format(values[0])} -> {form.format(values[-1])}" if values else "n/a"
+
+
+def plot_against_tasks(results: Results, path: Path) -> None:
+    """Final mean test PSNR against the number of tasks, one panel per scene, one line per recipe and budget per task
+    (or per total budget where every setting has its own budget per task)."""
+    scenes = list(results)
+    figure = Figure(figsize=(5.5 * len(scenes), 4.0), layout="constrained")
+    for axes, scene in zip(figure.subplots(1, len(scenes), squeeze=False)[0], scenes):
+        settings = [Setting.parse(key) for key in results[scene]]
+        by_task_budget = len({s.key.split("x")[1] for s in settings}) < len(settings)
+        for recipe in results[scene][settings[0].key]:
+            series: Dict[str, List[Tuple[int, float]]] = {}
+            for setting in settings:
+                budget = setting.key.split("x")[1] + " per task" if by_task_budget else f"{total(setting)} in all"
+                psnr = results[scene][setting.key][recipe].final_mean_psnr
+                series.setdefault(budget, []).append((setting.num_tasks, psnr))
+            for budget, points in series.items():
+                tasks, psnr = zip(*sorted(points))
+                axes.plot(tasks, psnr, marker="o", label=f"{recipe} ({budget})")
+        axes.set_xscale("log", base=2)
+        axes.set_xlabel("tasks")
+        axes.set_ylabel("final mean test PSNR (dB)")
+        axes.set_title(scene)
+        axes.legend(fontsize=7)
+    figure.savefig(path, dpi=120)
+
+
+def total(setting: Setting) -> str:
+    """A setting's whole budget: iterations, or seconds."""
+    if setting.seconds is not None:
+        return f"{setting.num_tasks * setting.seconds:g} s"
+    return f"{setting.num_tasks * (setting.iterations or 0)} iterations"
 
 
 def print_table(title: str, runs: Mapping[str, RunSummary]) -> None:
