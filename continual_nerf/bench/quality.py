@@ -17,7 +17,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Literal, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Tuple
 
 import tyro
 from matplotlib.figure import Figure
@@ -27,6 +27,7 @@ from rich.table import Table
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import check_names
 from continual_nerf.bench.grid import Grid, Recipe, RunSummary, Setting, decibels, folder_name, parse_recipe
+from continual_nerf.dataparsers.continual_demo_dataparser import DemoScene
 from continual_nerf.method_configs import CONTINUAL_NGP
 
 JOINT = "joint (upper bound)"
@@ -55,8 +56,8 @@ Results = Dict[str, Dict[str, Dict[str, RunSummary]]]
 class QualityBenchmark(Grid):
     """Trains every recipe on both built-in scenes at each setting and prints how each compares to the joint bound."""
 
-    scenes: Tuple[Literal["room", "street"], ...] = ("room", "street")
-    """Built-in scenes to measure on (continual-demo --scene)."""
+    scenes: Tuple[DemoScene, ...] = ("room", "street")
+    """Built-in scenes to measure on (continual-demo --scene): the long captures rooms and long-street too."""
     settings: Tuple[str, ...] = ("5x240", "10x120")
     """Tasks x budget per task: iterations (5x240) or training seconds (5x20s)."""
     recipes: Tuple[str, ...] = tuple(RECIPES)
