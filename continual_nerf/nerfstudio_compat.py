@@ -32,8 +32,8 @@ from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
 
-from continual_nerf.core.interrupts import EXIT_CODES
 from continual_nerf.errors import first_line
+from continual_nerf.interrupts import EXIT_CODES
 
 __all__ = ["VISER_NERFSTUDIO_SCALE_RATIO"]
 

@@ -33,8 +33,8 @@ from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
+from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.nerfstudio_compat import first_step, launch_processes_here, leave_pause, set_resume_step
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
