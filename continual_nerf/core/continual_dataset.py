@@ -18,8 +18,8 @@ from torch import Tensor
 
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.core.valid_pixels import ValidPixels, inside_circle
-from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS
 from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS
 from continual_nerf.untrusted_files import check_regular
 
 IMAGE_MODES = ("L", "RGB", "RGBA")
