@@ -14,6 +14,7 @@ from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModelConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
@@ -33,7 +34,9 @@ CONTINUAL_NGP = ContinualTrainerConfig(
     save_only_latest_checkpoint=False,
     mixed_precision=True,
     pipeline=ContinualPipelineConfig(
-        datamanager=ContinualDataManagerConfig(train_num_rays_per_batch=1024),
+        datamanager=ContinualDataManagerConfig(
+            dataparser=ContinualDemoDataParserConfig(), train_num_rays_per_batch=1024
+        ),
         model=ContinualNGPModelConfig(eval_num_rays_per_chunk=1 << 13),
         # the last quarter of each task at a falling rate: what each task ends with, and the oracle copies, has settled
         lr_decay_per_task=0.1,
