@@ -16,6 +16,7 @@ from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModelConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
+from continual_nerf.viewer.live_trainer import LiveViewerTrainerConfig
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 
@@ -25,7 +26,7 @@ def _adam() -> dict:
     return {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": None}
 
 
-CONTINUAL_NGP = ContinualTrainerConfig(
+CONTINUAL_NGP = LiveViewerTrainerConfig(
     method_name="continual-ngp",
     steps_per_eval_batch=500,
     steps_per_eval_image=500,
@@ -63,7 +64,7 @@ continual_ngp = MethodSpecification(
 )
 
 
-def _streaming(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+def _streaming(config: LiveViewerTrainerConfig) -> LiveViewerTrainerConfig:
     """`config` reading its tasks from a capture folder while it is written; every other option stays the same."""
     config = copy.deepcopy(config)
     config.method_name = "continual-ngp-stream"
