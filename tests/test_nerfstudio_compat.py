@@ -20,11 +20,12 @@ from helpers import demo_parser, tiny_config, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.engine.trainer import Trainer
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from torch import nn
+from torch.nn.parallel import DistributedDataParallel
 
 from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
@@ -292,3 +293,58 @@ def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_o
         assert (rendered(0) - rendered(1)).abs().max() > 1e-4, "each ray gets its frame's code"
         assert not model.proposal_networks.training, "only the field's own flag is set"
     assert not model.field.training
+
+
+class Pausing(compat.DeferredPauseTrainer):
+    """A trainer whose pauses wait for the end of the iteration."""
+
+    def pause_waits(self) -> bool:
+        return True
+
+
+def test_the_trainer_s_training_state_is_an_attribute_a_property_can_stand_in_for(tmp_path):
+    from nerfstudio.viewer.viewer import Viewer
+
+    assert "self.training_state: Literal" in inspect.getsource(Trainer.__init__)
+    assert 'while self.training_state == "paused":' in inspect.getsource(Trainer.train)
+    assert 'self.trainer.training_state = "paused"' in inspect.getsource(Viewer), "the Pause button assigns it"
+    trainer = Pausing(TrainerConfig(output_dir=tmp_path, method_name="pausing", experiment_name="test"))
+    assert trainer.training_state == "training"
+    trainer.training_state = "paused"
+    assert trainer.training_state == "training" and trainer.pause_requested, "the pause waits for the iteration's end"
+    trainer.stop_training = False
+    assert trainer.pause_now() and trainer.training_state == "paused"
+
+
+class Wrapper(DistributedDataParallel):
+    """A DDP wrapper without a process group: the wrapped model as `module`."""
+
+    def __init__(self, module: nn.Module) -> None:
+        nn.Module.__init__(self)
+        self.module = module
+
+
+def test_the_pipeline_trains_the_model_it_keeps_as_model_and_unwraps_it():
+    pipeline = VanillaPipeline.__new__(VanillaPipeline)  # only what the model's keeping needs
+    nn.Module.__init__(pipeline)
+    model = nn.Linear(2, 1)
+    pipeline._model = model  # as VanillaPipeline.__init__ keeps it
+    assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+    compat.wrap_model(pipeline, Wrapper)
+    assert pipeline.model is model, "nerfstudio's `model` unwraps the wrapper's module"
+    assert isinstance(compat.trained_model(pipeline), Wrapper)
+    assert set(pipeline.state_dict()) == {"_model.module.weight", "_model.module.bias"}
+    assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+
+
+def test_a_dataset_keeps_the_cameras_as_parsed_before_its_downscale(tmp_path):
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+    from nerfstudio.data.datasets.base_dataset import InputDataset
+
+    cameras = Cameras(camera_to_worlds=torch.eye(4)[None, :3], fx=10.0, fy=10.0, cx=8.0, cy=6.0, width=16, height=12)
+    outputs = DataparserOutputs(image_filenames=[tmp_path / "frame.png"], cameras=cameras, scene_box=SCENE_BOX)
+    dataset = InputDataset(outputs, scale_factor=0.5)
+    assert int(dataset.cameras.width[0]) == 8, "the dataset's own cameras are downscaled"
+    assert int(compat.cameras_as_parsed(dataset).width[0]) == 16
+
