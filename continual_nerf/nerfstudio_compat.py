@@ -8,8 +8,10 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import signal
+import threading
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
 from typing import Any, Callable, Dict, Iterator, List, Literal, Mapping, Optional
@@ -20,6 +22,7 @@ import numpy as np
 import torch
 import torchmetrics.image.lpip
 import viser.transforms as vtf
+import websockets.server
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
@@ -33,6 +36,7 @@ from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
+from websockets.legacy.server import serve as legacy_serve
 
 from continual_nerf.errors import first_line
 from continual_nerf.interrupts import EXIT_CODES
@@ -481,3 +485,29 @@ def cameras_as_parsed(dataset: InputDataset) -> Cameras:
     Depends on: `InputDataset` keeping the DataparserOutputs it was built from in `_dataparser_outputs`.
     """
     return dataset._dataparser_outputs.cameras
+
+
+@contextmanager
+def viewer_answering_when_ready() -> Iterator[None]:
+    """Viser servers started inside the context hold every request (the page and its websocket) until it exits: a
+    browser that opens the viewer meanwhile waits, then gets the page as complete as the context built it.
+
+    Depends on: viser 0.2.7's `infra.WebsockServer` serving its page and its websocket through
+    `websockets.server.serve(..., process_request=...)` (an alias of websockets' legacy server), called while its `ViserServer`
+    is constructed. Held requests have no handshake timeout (websockets' is 10 s; set-up may take longer).
+    """
+    ready = threading.Event()
+
+    def serve_when_ready(*args: Any, process_request: Optional[Callable[..., Any]] = None, **kwargs: Any) -> Any:
+        async def when_ready(path: str, headers: Any) -> Any:
+            while not ready.is_set():
+                await asyncio.sleep(0.05)
+            return None if process_request is None else await process_request(path, headers)
+
+        return legacy_serve(*args, **{**kwargs, "process_request": when_ready, "open_timeout": None})
+
+    try:
+        with mock.patch.object(websockets.server, "serve", serve_when_ready):
+            yield
+    finally:
+        ready.set()

@@ -348,3 +348,17 @@ def test_a_dataset_keeps_the_cameras_as_parsed_before_its_downscale(tmp_path):
     assert int(dataset.cameras.width[0]) == 8, "the dataset's own cameras are downscaled"
     assert int(compat.cameras_as_parsed(dataset).width[0]) == 16
 
+
+def test_a_viser_server_started_while_held_answers_once_released():
+    import viser
+
+    from continual_nerf.bench.browser import viewer_answers
+
+    port = _free_port()
+    with compat.viewer_answering_when_ready():
+        server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+        assert not viewer_answers(port), "the page answered while the context was building it"
+    try:
+        assert viewer_answers(port), "the page did not answer once released"
+    finally:
+        server.stop()

@@ -41,6 +41,7 @@ from continual_nerf.nerfstudio_compat import (
     launch_processes_here,
     leave_pause,
     set_resume_step,
+    viewer_answering_when_ready,
 )
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
@@ -175,14 +176,15 @@ class ContinualTrainer(DeferredPauseTrainer):
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        with one_line_exit(self.config.method_name):
-            super().setup(test_mode)
-        if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
-            # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
-            self.viewer_state.viser_server.stop()
-            self.viewer_state = None
-        if isinstance(self.viewer_state, Viewer):
-            self.extend_viewer(self.viewer_state)
+        with viewer_answering_when_ready():  # the page answers once it shows what extend_viewer adds
+            with one_line_exit(self.config.method_name):
+                super().setup(test_mode)
+            if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
+                # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
+                self.viewer_state.viser_server.stop()
+                self.viewer_state = None
+            if isinstance(self.viewer_state, Viewer):
+                self.extend_viewer(self.viewer_state)
         warm_up(
             self.pipeline.model,
             self.config.pipeline.datamanager.train_num_rays_per_batch,
@@ -191,7 +193,7 @@ class ContinualTrainer(DeferredPauseTrainer):
         self.show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
 
     def extend_viewer(self, viewer: Viewer) -> None:
-        """Add to nerfstudio's viewer once it runs (the viewer's trainer adds the continual panel)."""
+        """Add to nerfstudio's viewer before its page first answers (the viewer's trainer adds the continual panel)."""
 
     def show_stage(self, stage: str) -> None:
         """Say what set-up is doing before training starts (the viewer's trainer shows it in its panel)."""

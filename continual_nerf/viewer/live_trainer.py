@@ -27,7 +27,7 @@ class LiveViewerTrainerConfig(ContinualTrainerConfig):
 
 class LiveViewerTrainer(ContinualTrainer):
     """ContinualTrainer that builds the continual panel when the viewer runs (as nerfstudio's Trainer builds its
-    viewer) and installs it as soon as the viewer answers."""
+    viewer) and installs it before the viewer's page first answers."""
 
     config: LiveViewerTrainerConfig
     panel: Optional[ContinualPanel] = None

@@ -34,6 +34,7 @@ from continual_nerf.nerfstudio_compat import (
     rerender,
     set_render_defaults,
     show_step,
+    viewer_answering_when_ready,
     without_lpips,
 )
 from continual_nerf.viewer.continual_panel import PANEL_LABEL, TaskPictures, frame_view, mean_psnr_text
@@ -135,14 +136,15 @@ class ContinualRunViewer:
         if not task_checkpoints(config.get_checkpoint_dir(), accuracy):
             raise ContinualNerfError(f"{config.get_checkpoint_dir()}: no checkpoint written at the end of a task")
         lock = Lock()
-        viewer = Viewer(
-            self.viewer,
-            log_filename=base_dir / self.viewer.relative_log_filename,
-            datapath=pipeline.datamanager.get_datapath(),
-            pipeline=pipeline,
-            train_lock=lock,
-        )
-        travel = TaskTravel(viewer, pipeline, lock, accuracy, config.get_checkpoint_dir(), self.viewer)
+        with viewer_answering_when_ready():  # the page answers once it shows the panel
+            viewer = Viewer(
+                self.viewer,
+                log_filename=base_dir / self.viewer.relative_log_filename,
+                datapath=pipeline.datamanager.get_datapath(),
+                pipeline=pipeline,
+                train_lock=lock,
+            )
+            travel = TaskTravel(viewer, pipeline, lock, accuracy, config.get_checkpoint_dir(), self.viewer)
         CONSOLE.print(viewer.viewer_info[0])
         return travel
 
