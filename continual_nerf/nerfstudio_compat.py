@@ -415,7 +415,8 @@ def viewer_render_rays_per_second() -> Optional[float]:
 
 
 class DeferredPauseTrainer(Trainer):
-    """nerfstudio's Trainer whose pause can wait for the end of the running iteration (`pause_waits`).
+    """nerfstudio's Trainer whose pause can wait for the end of the running iteration (`pause_waits`), and which says
+    when its training state changes (`training_state_changed`).
 
     Depends on: `Trainer.__init__` assigning `self.training_state`, the viewer's Pause / Resume buttons assigning it
     from the viewer's thread (`Viewer._toggle_training_state`), and `Trainer.train` waiting before each iteration
@@ -436,16 +437,21 @@ class DeferredPauseTrainer(Trainer):
             self.pause_requested = True
         else:
             self._training_state = state
+        self.training_state_changed()
 
     def pause_waits(self) -> bool:
         """Whether a pause waits for the end of the running iteration instead of stopping the loop before the next."""
         return False
+
+    def training_state_changed(self) -> None:
+        """Called whenever `training_state` is assigned or a requested pause starts, from the thread that did it."""
 
     def pause_now(self) -> bool:
         """Whether training pauses (or stays paused) from this iteration's end: a requested pause starts here."""
         if self.pause_requested:
             self._training_state = "paused"
             self.pause_requested = False
+            self.training_state_changed()
         return self._training_state == "paused" and not self.stop_training
 
 

@@ -296,10 +296,15 @@ def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_o
 
 
 class Pausing(compat.DeferredPauseTrainer):
-    """A trainer whose pauses wait for the end of the iteration."""
+    """A trainer whose pauses wait for the end of the iteration, counting the state changes it is told of."""
+
+    changes = 0
 
     def pause_waits(self) -> bool:
         return True
+
+    def training_state_changed(self) -> None:
+        self.changes += 1
 
 
 def test_the_trainer_s_training_state_is_an_attribute_a_property_can_stand_in_for(tmp_path):
@@ -309,11 +314,11 @@ def test_the_trainer_s_training_state_is_an_attribute_a_property_can_stand_in_fo
     assert 'while self.training_state == "paused":' in inspect.getsource(Trainer.train)
     assert 'self.trainer.training_state = "paused"' in inspect.getsource(Viewer), "the Pause button assigns it"
     trainer = Pausing(TrainerConfig(output_dir=tmp_path, method_name="pausing", experiment_name="test"))
-    assert trainer.training_state == "training"
+    assert trainer.training_state == "training" and trainer.changes == 1, "nerfstudio's __init__ went through it"
     trainer.training_state = "paused"
     assert trainer.training_state == "training" and trainer.pause_requested, "the pause waits for the iteration's end"
     trainer.stop_training = False
-    assert trainer.pause_now() and trainer.training_state == "paused"
+    assert trainer.pause_now() and trainer.training_state == "paused" and trainer.changes == 3
 
 
 class Wrapper(DistributedDataParallel):

@@ -91,6 +91,9 @@ class DevTools:
     def input_checked(self, label: str) -> bool:
         return self.evaluate(f"({INPUT_BY_LABEL})({json.dumps(label)}).checked")
 
+    def input_disabled(self, label: str) -> bool:
+        return self.evaluate(f"({INPUT_BY_LABEL})({json.dumps(label)}).disabled")
+
     def click_input(self, label: str) -> None:
         assert self.evaluate(f"(() => {{ ({INPUT_BY_LABEL})({json.dumps(label)}).click(); return true; }})()")
 

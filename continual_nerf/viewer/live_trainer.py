@@ -40,6 +40,7 @@ class LiveViewerTrainer(ContinualTrainer):
             pipeline.request_next_task,
             lambda: pipeline.datamanager.train_dataset,
             self.config.viewer,
+            paused=lambda: self.training_state == "paused" or self.pause_requested,
         )
         self.panel.install(viewer, self.training_state)
         self.callbacks += self.panel.training_callbacks(self)
@@ -47,6 +48,10 @@ class LiveViewerTrainer(ContinualTrainer):
     def show_stage(self, stage: str) -> None:
         if self.panel is not None:
             self.panel.show_stage(stage)
+
+    def training_state_changed(self) -> None:
+        if self.panel is not None:  # nerfstudio's Pause / Resume buttons: the panel says so while the loop waits
+            self.panel.refresh()
 
     def _init_viewer_state(self) -> None:
         # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown, and
