@@ -30,6 +30,7 @@ from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.model_components.scene_colliders import SceneCollider
+from nerfstudio.models.base_model import Model
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from nerfstudio.utils import writer
@@ -517,3 +518,25 @@ def viewer_answering_when_ready() -> Iterator[None]:
             yield
     finally:
         ready.set()
+
+
+def watch_viewer_renders(model: Model, rendered: Callable[[Cameras, bool], None]) -> None:
+    """Call `rendered(camera, completed)` after each render the viewer makes with `model`; `completed` is False for a
+    render the viewer interrupted (the camera moved, a rerender was asked for).
+
+    Depends on: the viewer's render thread (`RenderStateMachine._render_img`) rendering through
+    `viewer.get_model().get_outputs_for_camera(camera, obb_box=...)`, looked up on the model instance, and raising out
+    of it to interrupt a render.
+    """
+    render = model.get_outputs_for_camera
+
+    def render_and_say(camera: Cameras, **options: Any) -> Dict[str, torch.Tensor]:
+        completed = False
+        try:
+            outputs = render(camera, **options)
+            completed = True
+            return outputs
+        finally:
+            rendered(camera, completed)
+
+    model.get_outputs_for_camera = render_and_say  # type: ignore[method-assign]

@@ -367,3 +367,19 @@ def test_a_viser_server_started_while_held_answers_once_released():
         assert viewer_answers(port), "the page did not answer once released"
     finally:
         server.stop()
+
+
+def test_the_viewer_renders_through_the_model_s_get_outputs_for_camera():
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    assert "self.viewer.get_model().get_outputs_for_camera(camera, obb_box=obb)" in inspect.getsource(
+        RenderStateMachine._render_img
+    )
+    model = small_model(ContinualNGPModelConfig(compile=False)).setup(scene_box=SCENE_BOX, num_train_data=1)
+    model.get_outputs_for_camera = mock.Mock(side_effect=[{"rgb": torch.zeros(1)}, RuntimeError("interrupted")])
+    seen = []
+    compat.watch_viewer_renders(model, lambda camera, completed: seen.append((camera, completed)))
+    model.get_outputs_for_camera("camera 1", obb_box=None)
+    with pytest.raises(RuntimeError):
+        model.get_outputs_for_camera("camera 2", obb_box=None)
+    assert seen == [("camera 1", True), ("camera 2", False)]
