@@ -255,7 +255,7 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
     try:
         chromium.navigate(f"http://127.0.0.1:{options.websocket_port}")
         wait_for("the task slider", lambda: chromium.input_value("Task") == "2")
-        assert line(chromium, CHECKPOINT_LABEL) == f"step-{accuracy.steps[1]:09d}.ckpt (end of task 2)"
+        assert line(chromium, CHECKPOINT_LABEL) == f"end of task 2, step-{accuracy.steps[1]:09d}.ckpt"
         assert not chromium.text_cut_off(CHECKPOINT_LABEL)
         assert ACCURACY_ALT in chromium.images()
         assert chromium.input_value("Mean test PSNR") == f"{accuracy.mean_psnr[1]:.2f} dB after task 2"
@@ -265,7 +265,7 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         after_task_2 = chromium.screenshot_png()
 
         chromium.set_slider("Task", 1)
-        task_1 = f"step-{accuracy.steps[0]:09d}.ckpt (end of task 1)"
+        task_1 = f"end of task 1, step-{accuracy.steps[0]:09d}.ckpt"
         wait_for(
             "the page to say task 1's view renders",
             lambda: line(chromium, CHECKPOINT_LABEL).startswith(f"{task_1}, {RENDERING}"),

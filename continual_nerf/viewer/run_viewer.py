@@ -45,15 +45,17 @@ from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 CHECKPOINT_LABEL = "Checkpoint:"
 """Start of the panel's line naming the checkpoint the render comes from."""
+LOADING = "loading"
+"""What the checkpoint line adds while the checkpoint loads."""
 RENDERING = "rendering its view"
 """What the checkpoint line adds while the view of the checkpoint just loaded renders."""
 
 
 def checkpoint_text(path: Optional[Path], task: int) -> str:
-    """The checkpoint written at the end of `task` (0-based) by file name, short enough for the panel's width."""
+    """The checkpoint written at the end of `task` (0-based), by file name: the line wraps before the name."""
     if path is None:
         return f"none written at the end of task {task + 1}"
-    return f"{path.name} (end of task {task + 1})"
+    return f"end of task {task + 1}, {path.name}"
 
 
 def task_checkpoints(checkpoint_dir: Path, accuracy: AccuracyMatrix) -> Dict[int, Path]:
@@ -125,7 +127,7 @@ class TaskTravel:
     def request(self, task: int) -> None:
         """Show `task` (0-based) as soon as the loader thread is free; a later request replaces this one."""
         path = self.checkpoints.get(task)
-        self._say(f"loading {checkpoint_text(path, task)}" if path is not None else checkpoint_text(path, task))
+        self._say(checkpoint_text(path, task) + (f", {LOADING}" if path is not None else ""))
         with self.wake:
             self.requested = task
             self.wake.notify()
@@ -146,11 +148,12 @@ class TaskTravel:
             return
         shown = checkpoint_text(path, task)
         self.rendering = None  # a render ending now shows the weights that are being replaced
-        self._say(f"loading {shown}")
+        self._say(f"{shown}, {LOADING}")
         try:
             state = read_checkpoint(path)
         except ContinualNerfError as error:
-            self._say(f"{path.name} could not be read ({error})")
+            self._say(f"{shown}, could not be read (see the terminal)")
+            CONSOLE.print(f"continual-nerf-viewer: {error}", markup=False, soft_wrap=True)
             return
         rerender(self.viewer)  # interrupts a render in progress: it holds the lock the weights are swapped under
         with self.lock:  # renders end under it too: none ends between the swap and what the line says of it
