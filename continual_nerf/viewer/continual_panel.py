@@ -248,9 +248,10 @@ class ContinualPanel:
         """The progress line: set-up stage, the open task's budget, or that training is paused or finished."""
         if self.finished:
             return FINISHED
+        if self.paused() and self.stage is not None:
+            return f"{PAUSED} before training starts; Resume Training starts it"
         if self.paused():
-            where = "before training starts" if self.stage is not None else f"({progress})"
-            return f"{PAUSED} {where}; Resume Training goes on"
+            return f"{PAUSED} ({progress}); Resume Training goes on"
         return progress if self.stage is None else f"setting up: {self.stage}"
 
     def _show_progress(self, text: str) -> None:
