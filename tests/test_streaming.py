@@ -16,9 +16,9 @@ import pytest
 from helpers import demo_parser, replayed, stream_config
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.dataparsers.capture_folder import CaptureWatcher
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError, DatasetError
-from continual_nerf.streaming.capture_folder import CaptureWatcher
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 

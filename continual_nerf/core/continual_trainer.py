@@ -1,6 +1,6 @@
 """nerfstudio's Trainer, with the iteration count derived from the task budget, one-line errors for bad input,
-atomic checkpoints, a resume (`--load-dir`) that continues a killed run where it stopped, and the continual
-panel in the viewer."""
+atomic checkpoints and a resume (`--load-dir`) that continues a killed run where it stopped. The continual panel in
+the viewer is added by the viewer's trainer (continual_nerf/viewer/live_trainer.py), through `extend_viewer`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.utils.writer import EventName
@@ -33,15 +33,18 @@ from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
-from continual_nerf.nerfstudio_compat import first_step, launch_processes_here, leave_pause, set_resume_step
+from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
+from continual_nerf.nerfstudio_compat import (
+    DeferredPauseTrainer,
+    first_step,
+    launch_processes_here,
+    leave_pause,
+    set_resume_step,
+    viewer_answering_when_ready,
+)
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
-from continual_nerf.viewer.continual_panel import ContinualPanel
-from continual_nerf.viewer.viewer_config import ContinualViewerConfig
-
-TrainingState = Literal["training", "paused", "completed"]
 
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
@@ -58,8 +61,6 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False
     """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
-    viewer: ContinualViewerConfig = field(default_factory=ContinualViewerConfig)
-    """nerfstudio's viewer with the continual panel: the released tasks' cameras, the accuracy matrix, controls."""
 
     def validate(self) -> None:
         super().validate()
@@ -138,19 +139,14 @@ def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
         raise SystemExit(f"{method_name}: error: {line}") from None
 
 
-class ContinualTrainer(Trainer):
+class ContinualTrainer(DeferredPauseTrainer):
     """Runs nerfstudio's training loop unchanged; the pipeline's callbacks switch tasks and stop it."""
 
     config: ContinualTrainerConfig
     pipeline: ContinualPipeline
-    _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
-        self.pause_requested = False
-        """With several processes: the viewer asked for a pause, which starts at the end of the iteration."""
         super().__init__(config, local_rank, world_size)
-        self.panel: Optional[ContinualPanel] = None
-        """The viewer's continual-learning panel, when the viewer runs."""
         self._resumed_from: Optional[Path] = None
         """The checkpoint folder this run resumed from, if any."""
 
@@ -180,55 +176,33 @@ class ContinualTrainer(Trainer):
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        with one_line_exit(self.config.method_name):
-            super().setup(test_mode)
-        if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
-            # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
-            self.viewer_state.viser_server.stop()
-            self.viewer_state = None
-        if isinstance(self.viewer_state, Viewer):
-            self.panel = self._install_panel(self.viewer_state)
-        show_stage = self.panel.show_stage if self.panel is not None else lambda stage: None
+        with viewer_answering_when_ready():  # the page answers once it shows what extend_viewer adds
+            with one_line_exit(self.config.method_name):
+                super().setup(test_mode)
+            if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
+                # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
+                self.viewer_state.viser_server.stop()
+                self.viewer_state = None
+            if isinstance(self.viewer_state, Viewer):
+                self.extend_viewer(self.viewer_state)
         warm_up(
             self.pipeline.model,
             self.config.pipeline.datamanager.train_num_rays_per_batch,
-            progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
+            progress=lambda part: self.show_stage(f"compiling the model (torch.compile), {part}"),
         )
-        show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+        self.show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
 
-    @property
-    def training_state(self) -> TrainingState:
-        return self._training_state
+    def extend_viewer(self, viewer: Viewer) -> None:
+        """Add to nerfstudio's viewer before its page first answers (the viewer's trainer adds the continual panel)."""
 
-    @training_state.setter
-    def training_state(self, state: TrainingState) -> None:
+    def show_stage(self, stage: str) -> None:
+        """Say what set-up is doing before training starts (the viewer's trainer shows it in its panel)."""
+
+    def pause_waits(self) -> bool:
         # with several processes a pause (the viewer's button, from its own thread) starts at the end of an
         # iteration, where every process learns of it (hold_while_paused); nerfstudio's loop, seeing it sooner, would
         # stop process 0 alone while the others wait in the next gradient all-reduce
-        if state == "paused" and distributed.is_distributed():
-            self.pause_requested = True
-        else:
-            self._training_state = state
-
-    def pause_now(self) -> bool:
-        """Whether training pauses (or stays paused) from this iteration's end: what hold_while_paused holds on."""
-        if self.pause_requested:
-            self._training_state = "paused"
-            self.pause_requested = False
-        return self._training_state == "paused" and not self.stop_training
-
-    def _install_panel(self, viewer: Viewer) -> ContinualPanel:
-        """The continual panel, in the viewer from the moment it answers (before the model compiles)."""
-        pipeline = self.pipeline
-        panel = ContinualPanel(
-            pipeline.status,
-            pipeline.request_next_task,
-            lambda: pipeline.datamanager.train_dataset,
-            self.config.viewer,
-        )
-        panel.install(viewer, self.training_state)
-        self.callbacks += panel.training_callbacks(self)
-        return panel
+        return distributed.is_distributed()
 
     def _check_viewer_warnings(self) -> None:
         # nerfstudio's note says no evaluation runs with the viewer alone: its periodic evaluation does not, but the
@@ -381,9 +355,3 @@ class ContinualTrainer(Trainer):
             "scalers": self.grad_scaler.state_dict(),
             "rng": rng_states(),
         }
-
-    def _init_viewer_state(self) -> None:
-        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown, and
-        # the panel drew them when it was installed at set-up
-        if self.panel is None:
-            super()._init_viewer_state()
