@@ -36,6 +36,9 @@ NUMPY_SUFFIX = ".npy"
 """Depth maps stored as numpy arrays (as nerfstudio reads them too)."""
 DEPTH_KEY = "depth_image"
 """Batch key of the (.., 1) z-depth targets, in scene units, 0 where there is none: nerfstudio's depth models read it."""
+DIRECTIONS_NORM = "directions_norm"
+"""Ray bundle metadata (and model output) key of each ray direction's length in camera coordinates with unit z, as
+nerfstudio's cameras generate it: distance along the ray over z-depth."""
 METRES_PER_SCENE_UNIT = "metres_per_scene_unit"
 """Key of the training dataset's metadata (which nerfstudio hands to the model): 1 / the dataparser's scale."""
 
@@ -58,8 +61,14 @@ class Pinhole:
 
     @classmethod
     def of_camera(cls, cameras: Cameras, frame: int) -> "Pinhole":
-        values = [float(getattr(cameras, name)[frame]) for name in ("fx", "fy", "cx", "cy")]
-        return cls(*values, int(cameras.width[frame]), int(cameras.height[frame]))
+        fx, fy, cx, cy = (float(getattr(cameras, name)[frame]) for name in ("fx", "fy", "cx", "cy"))
+        return cls(fx, fy, cx, cy, int(cameras.width[frame]), int(cameras.height[frame]))
+
+    @classmethod
+    def of_row(cls, row: Tensor) -> "Pinhole":
+        """From fx, fy, cx, cy, width, height."""
+        fx, fy, cx, cy, width, height = row.tolist()
+        return cls(fx, fy, cx, cy, int(width), int(height))
 
 
 def _nearest(count: int, focal: float, centre: float, depth_focal: float, depth_centre: float) -> np.ndarray:
@@ -165,7 +174,7 @@ class DepthMaps:
         if self.intrinsics is None:
             calibrated = Pinhole.of_camera(self.calibrated_cameras, frame)
         else:
-            calibrated = Pinhole(*self.intrinsics[frame, :4].tolist(), *self.intrinsics[frame, 4:].long().tolist())
+            calibrated = Pinhole.of_row(self.intrinsics[frame])
         return calibrated.resized(*size)
 
     def read(self, frame: int) -> Tensor:

@@ -14,6 +14,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
+from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, depth_errors
 from continual_nerf.core.distillation_loss import distillation_loss
 from continual_nerf.core.per_frame import (
     FRAME_CAMERA,
@@ -215,6 +216,8 @@ class ContinualNGPModel(NerfactoModel):
                 outputs = super().get_outputs(ray_bundle)
         if self.color_transforms is not None and (self.training or frames is not None):
             outputs["rgb"] = self._as_recorded(outputs["rgb"], ray_bundle)
+        if DIRECTIONS_NORM in ray_bundle.metadata:  # rendered distances along rays to z-depth, for the depth metrics
+            outputs[DIRECTIONS_NORM] = ray_bundle.metadata[DIRECTIONS_NORM]
         return outputs
 
     def _as_recorded(self, rgb: torch.Tensor, ray_bundle: RayBundle) -> torch.Tensor:
@@ -236,6 +239,11 @@ class ContinualNGPModel(NerfactoModel):
     ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
         metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
         del metrics_dict["lpips"]
+        if DEPTH_KEY in batch:  # a capture with depth maps: how far the rendered geometry is from them (ns-eval)
+            metres = float(self.kwargs["metadata"][METRES_PER_SCENE_UNIT])
+            z_depth = outputs["depth"] / outputs[DIRECTIONS_NORM]
+            truth = batch[DEPTH_KEY].to(z_depth.device)
+            metrics_dict["depth_abs_rel"], metrics_dict["depth_rmse"] = depth_errors(z_depth, truth, metres)
         return metrics_dict, images_dict
 
     def get_extra_state(self) -> Dict[str, int]:
