@@ -34,6 +34,8 @@ DEPTH_IMAGE_MODES = ("I;16", "I;16B", "I", "F")
 """PIL modes of depth images: one channel of 16-bit or 32-bit integers or floats (8-bit would be a picture of depth)."""
 NUMPY_SUFFIX = ".npy"
 """Depth maps stored as numpy arrays (as nerfstudio reads them too)."""
+EDGE_TOLERANCE = 1e-6
+"""Depth pixels by which a colour pixel's centre may miss an edge between two depth pixels and still count as on it."""
 DEPTH_KEY = "depth_image"
 """Batch key of the (.., 1) z-depth targets, in scene units, 0 where there is none: nerfstudio's depth models read it."""
 DIRECTIONS_NORM = "directions_norm"
@@ -75,7 +77,9 @@ def _nearest(count: int, focal: float, centre: float, depth_focal: float, depth_
     """Per colour pixel along one axis (centres at i + 0.5, as nerfstudio casts rays), the index of the depth pixel
     its ray falls in; out of range where it falls outside the depth map."""
     normalised = (np.arange(count) + 0.5 - centre) / focal
-    return np.floor(normalised * depth_focal + depth_centre).astype(np.int64)
+    # a centre on the edge between two depth pixels (a depth map a whole multiple of the image's size) takes the second
+    # one, whatever the rounding of the arithmetic before
+    return np.floor(normalised * depth_focal + depth_centre + EDGE_TOLERANCE).astype(np.int64)
 
 
 def resample(depth: np.ndarray, depth_camera: Pinhole, colour_camera: Pinhole) -> np.ndarray:
