@@ -848,6 +848,26 @@ def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
     dist.destroy_process_group()
 
 
+class Killed(BaseException):
+    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
+
+
+def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
+    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        if len(calls) < save_number:
+            return real_save(obj, file, *args, **kwargs)
+        buffer = io.BytesIO()
+        real_save(obj, buffer)
+        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise Killed
+
+    monkeypatch.setattr(torch, "save", save)
+
+
 def flip_tensor_bytes(checkpoint: bytes) -> bytes:
     """A torch.save archive with four bytes flipped in the middle of its largest tensor's data: a valid zip whose
     tensors torch.load reads without a word, one member's CRC-32 wrong."""

@@ -31,8 +31,11 @@ class ContinualNGPDepthModelConfig(ContinualNGPModelConfig, DepthNerfactoModelCo
     sigmas are in scene units: metres times the dataparser's scale."""
 
     _target: Type = field(default_factory=lambda: ContinualNGPDepthModel)
-    depth_sigma: float = 0.01
-    """Uncertainty around depth values, in scene units (metres times the dataparser's scale)."""
+    depth_loss_mult: float = 0.1
+    """Lambda of the depth loss (depth-nerfacto's 1e-3 barely moves a task's geometry in a few hundred iterations)."""
+    depth_sigma: float = 1e-4
+    """Uncertainty around depth values in scene units (metres times the dataparser's scale); DS-NeRF reads it as a
+    variance (1e-4: 0.01 scene units, 10 cm in the demo room), URF as a width."""
     starting_depth_sigma: float = 0.2
     """Uncertainty around depth values at the start of training when should_decay_sigma, in scene units."""
     distill_replay_depth: bool = False
