@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from matplotlib import colormaps
@@ -21,17 +21,24 @@ def task_colour_float(task: int) -> Tuple[float, float, float]:
     return red / 255, green / 255, blue / 255
 
 
-def draw_accuracy_matrix(axes: Axes, psnr: Sequence[Sequence[float]], num_tasks: int) -> AxesImage:
-    """Heat map of R[i][j] (PSNR of task j after training task i) on `axes`, blank above the diagonal for unseen
-    tasks, the values written in the cells while they fit and the task numbers in the task colours."""
+def draw_accuracy_matrix(
+    axes: Axes,
+    psnr: Sequence[Sequence[Optional[float]]],
+    num_tasks: int,
+    value_format: str = ".1f",
+    colour_map: str = "viridis",
+) -> AxesImage:
+    """Heat map of R[i][j] (PSNR of task j after training task i; or another measure, `value_format` writing it and
+    `colour_map` colouring it) on `axes`, blank above the diagonal for unseen tasks and where a value is None, the
+    values written in the cells while they fit and the task numbers in the task colours."""
     matrix = np.full((max(len(psnr), 1), num_tasks), np.nan)
     for i, row in enumerate(psnr):
-        matrix[i, : len(row)] = row
-    image = axes.imshow(matrix, cmap="viridis", aspect="auto")
+        matrix[i, : len(row)] = np.array(row, dtype=float)  # None: nothing measured
+    image = axes.imshow(matrix, cmap=colour_map, aspect="auto")
     if num_tasks <= 12:
         for (i, j), value in np.ndenumerate(matrix):
             if not np.isnan(value):
-                axes.text(j, i, f"{value:.1f}", ha="center", va="center", color="white", fontsize=7)
+                axes.text(j, i, format(value, value_format), ha="center", va="center", color="white", fontsize=7)
     axes.set_xticks(range(num_tasks), [str(j + 1) for j in range(num_tasks)])
     axes.set_yticks(range(len(matrix)), [str(i + 1) for i in range(len(matrix))])
     for j, label in enumerate(axes.get_xticklabels()):

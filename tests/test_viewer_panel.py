@@ -18,8 +18,8 @@ from PIL import Image
 from continual_nerf.core.continual_pipeline import ContinualStatus
 from continual_nerf.method_configs import continual_ngp, continual_ngp_stream
 from continual_nerf.nerfstudio_compat import VISER_NERFSTUDIO_SCALE_RATIO
-from continual_nerf.viewer.continual_panel import mean_psnr_text, task_text
-from continual_nerf.viewer.pictures import accuracy_markdown, legend_markdown
+from continual_nerf.viewer.continual_panel import PICTURES, accuracy_rows, mean_psnr_text, task_text
+from continual_nerf.viewer.pictures import DEPTH_ALT, accuracy_markdown, legend_markdown
 from continual_nerf.viewer.task_cameras import camera_positions, framing_view, frustum_scale
 
 
@@ -73,6 +73,16 @@ def test_the_pictures_are_small_pngs_in_markdown():
     assert png_of(legend_markdown(12)).size[0] == 300
     picture = png_of(accuracy_markdown([[20.0], [19.0, 22.5], [18.0, 21.0, 25.0]], 5))
     assert picture.size[0] == 300 and picture.size[1] < 300
+
+
+def test_the_accuracy_picture_switches_to_depth_errors_where_there_are_some():
+    with_depth = ContinualStatus(1, 3, False, "", [[20.0], [19.0, 22.0]], [20.0, 20.5], False, [[0.1], [0.12, None]])
+    assert accuracy_rows(with_depth, PICTURES[0]) == ([[20.0], [19.0, 22.0]], False)
+    assert accuracy_rows(with_depth, PICTURES[1]) == ([[0.1], [0.12, None]], True)
+    without = ContinualStatus(1, 3, False, "", [[20.0]], [20.0], False)
+    assert accuracy_rows(without, PICTURES[1]) == ([[20.0]], False), "a capture without depth keeps PSNR"
+    picture = accuracy_markdown(with_depth.depth_rows, 3, depth=True)
+    assert picture.startswith(f"![{DEPTH_ALT}]") and png_of(picture).size[0] == 300
 
 
 def test_panel_texts():

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import base64
 import io
-from typing import Sequence
+from typing import Optional, Sequence
 
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
@@ -14,6 +14,8 @@ from continual_nerf.plots import draw_accuracy_matrix, task_colour_float
 
 ACCURACY_ALT = "accuracy matrix, PSNR (dB)"
 """Alt text of the accuracy picture (what a browser shows when it cannot draw it)."""
+DEPTH_ALT = "accuracy matrix, depth abs rel"
+"""Alt text of the accuracy picture of the rendered depth's error."""
 PANEL_DPI = 100
 """Pixels per inch of the pictures: the panel is about 300 pixels wide."""
 
@@ -41,13 +43,15 @@ def legend_markdown(num_tasks: int) -> str:
     return png_markdown(figure, "task colours")
 
 
-def accuracy_markdown(psnr: Sequence[Sequence[float]], num_tasks: int) -> str:
-    """The accuracy matrix so far as a heat map: test PSNR of task j (columns) after training task i (rows)."""
+def accuracy_markdown(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int, depth: bool = False) -> str:
+    """The accuracy matrix so far as a heat map: test PSNR of task j (columns) after training task i (rows); with
+    `depth`, the rendered depth's absolute relative error instead (darker is better)."""
     figure = Figure(figsize=(3.0, 0.9 + 0.25 * max(len(psnr), 2)), layout="constrained")
     axes = figure.add_subplot()
-    image = draw_accuracy_matrix(axes, psnr, num_tasks)
+    measure = {"value_format": ".3f", "colour_map": "viridis_r"} if depth else {}
+    image = draw_accuracy_matrix(axes, psnr, num_tasks, **measure)
     axes.tick_params(labelsize=7)
     axes.xaxis.label.set_fontsize(7)
     axes.yaxis.label.set_fontsize(7)
     figure.colorbar(image, ax=axes, fraction=0.05, pad=0.02).ax.tick_params(labelsize=6)
-    return png_markdown(figure, ACCURACY_ALT)
+    return png_markdown(figure, DEPTH_ALT if depth else ACCURACY_ALT)
