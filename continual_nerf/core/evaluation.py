@@ -1,4 +1,5 @@
-"""PSNR and SSIM of a model on held-out test frames, optionally after fitting each test frame's pose to its image.
+"""PSNR and SSIM of a model on held-out test frames (and the rendered depth's error where the capture has depth maps),
+optionally after fitting each test frame's pose to its image.
 
 A capture whose poses carry errors of their own per image (COLMAP registers every image on its own) gives its test
 frames errors no training frame shares: a render from the given pose then measures the pose error as much as the

@@ -85,9 +85,9 @@ class TaskPictures:
     def __init__(self, server: viser.ViserServer) -> None:
         self.legend = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
         self.accuracy = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
-        self._drawn: Tuple[int, Optional[List[List[Optional[float]]]], bool] = (0, None, False)
+        self._drawn: Tuple[int, Optional[Sequence[Sequence[Optional[float]]]], bool] = (0, None, False)
 
-    def show(self, num_tasks: int, psnr_rows: List[List[Optional[float]]], depth: bool = False) -> None:
+    def show(self, num_tasks: int, psnr_rows: Sequence[Sequence[Optional[float]]], depth: bool = False) -> None:
         """Draw the rows of PSNR (or, `depth`, of depth errors) that changed since the last drawing."""
         drawn_tasks, drawn_rows, drawn_depth = self._drawn
         if num_tasks != drawn_tasks:
