@@ -60,6 +60,7 @@ from PIL import Image
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
@@ -227,6 +228,13 @@ def depth_method_without_depth(context: Context) -> Tuple[ContinualTrainerConfig
     return config, f"{folder}: has no depth maps (ScanNet depth/, TUM depth.txt, transforms.json depth_file_path)"
 
 
+def depth_method_on_a_stream(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    config = stream_config(context.scratch / "runs", context.scratch / "capture", "wait", 4, 2)
+    model = {f.name: getattr(config.pipeline.model, f.name) for f in dataclasses.fields(config.pipeline.model)}
+    config.pipeline.model = ContinualNGPDepthModelConfig(**{k: v for k, v in model.items() if k != "_target"})
+    return config, "a model that trains on depth (continual-ngp-depth) needs a finished capture's depth maps"
+
+
 def scannet_depth_map_missing(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     folder = write_exported(context.scratch / "scene0101_00", scannet_poses(6), depth_intrinsic=SCANNET_DEPTH_INTRINSIC)
     (folder / "depth" / "4.png").unlink()
@@ -387,6 +395,7 @@ CORPUS = [
     BadInput("depth-map-of-colour", depth_capture(colour_depth_map), fails_in="train"),
     BadInput("truncated-depth-map-released-mid-run", depth_capture(truncated_depth_map_of_task_2), fails_in="train"),
     BadInput("depth-method-on-a-capture-without-depth", depth_method_without_depth),
+    BadInput("depth-method-on-a-stream", depth_method_on_a_stream),
     BadInput("scannet-depth-map-missing", scannet_depth_map_missing),
     BadInput("scannet-sens-occi-depth", sens_occi_depth),
     BadInput(

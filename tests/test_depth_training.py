@@ -66,6 +66,9 @@ def test_colour_only_methods_read_no_training_depth(run_dir, monkeypatch):
     test_files = set(trainer.pipeline.datamanager.eval_dataset.depth_maps.filenames)
     assert reads and set(reads) <= test_files, "continual-ngp reads the test frames' depth, to measure it, only"
     assert trainer.pipeline.accuracy.depth_abs_rel, "and the accuracy matrix has its depth errors"
+    metrics = trainer.pipeline.get_average_eval_image_metrics()  # what ns-eval reports
+    assert np.isfinite([metrics["depth_abs_rel"], metrics["depth_rmse"], metrics["psnr"]]).all()
+    assert metrics["depth_abs_rel"] == pytest.approx(trainer.pipeline.accuracy.mean_depth_abs_rel[-1], rel=1e-4)
 
 
 def test_a_closed_tasks_depth_maps_are_never_read_again(run_dir, monkeypatch):

@@ -90,6 +90,11 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
                 "--pipeline.model.camera-optimizer.mode need every frame known when training starts; this datamanager "
                 "receives frames while it trains"
             )
+        if trains_on_depth(self.model) and not self.datamanager.frames_known_at_start():
+            raise ContinualConfigError(
+                "a model that trains on depth (continual-ngp-depth) needs a finished capture's depth maps; this "
+                "datamanager receives frames, without depth, while it trains"
+            )
 
 
 @dataclass(frozen=True)
