@@ -38,6 +38,9 @@ class ContinualNGPDepthModelConfig(ContinualNGPModelConfig, DepthNerfactoModelCo
     variance (1e-4: 0.01 scene units, 10 cm in the demo room), URF as a width."""
     starting_depth_sigma: float = 0.2
     """Uncertainty around depth values at the start of training when should_decay_sigma, in scene units."""
+    depth_loss_type: DepthLossType = DepthLossType.DS_NERF
+    """Depth loss: DS_NERF (DS-NeRF) or URF (Urban Radiance Fields); SPARSENERF_RANKING needs nerfstudio's pair
+    sampler and pseudo-depth, which continual training does not draw."""
     distill_replay_depth: bool = False
     """Give replayed rays the depth the replay oracle renders as their depth target, as their colour; off: only the
     open task's pixels (and a replay buffer's) carry depth."""
