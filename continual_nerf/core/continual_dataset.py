@@ -16,7 +16,7 @@ from nerfstudio.data.utils.data_utils import get_image_mask_tensor_from_path
 from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
-from continual_nerf.core.depth_maps import DEPTH_KEY, METRES_PER_SCENE_UNIT, DepthMaps
+from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, DepthMaps, directions_norm
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.core.valid_pixels import ValidPixels, inside_circle
 from continual_nerf.errors import DatasetError, first_line
@@ -173,7 +173,8 @@ class ContinualDataset(InputDataset):
 
 class TestFrameDataset(InputDataset):
     """Held-out test frames: read by the evaluation only, never by training. Each frame's batch holds its depth map
-    when the capture has them (nerfstudio's `depth_image`: the model's depth metrics read it)."""
+    when the capture has them (nerfstudio's `depth_image`, and its rays' `directions_norm`: the model's depth metrics
+    read them)."""
 
     def __init__(self, dataparser_outputs: DataparserOutputs, scale_factor: float = 1.0):
         super().__init__(dataparser_outputs, scale_factor=scale_factor)
@@ -186,7 +187,12 @@ class TestFrameDataset(InputDataset):
     def get_metadata(self, data: Dict) -> Dict:
         if self.depth_maps is None:
             return {}
-        return {DEPTH_KEY: self.depth_maps.read(data["image_idx"])[..., None]}
+        frame = data["image_idx"]
+        # z-depth, and what turns the model's distances along rays into it
+        return {
+            DEPTH_KEY: self.depth_maps.read(frame)[..., None],
+            DIRECTIONS_NORM: directions_norm(self.cameras, frame),
+        }
 
 
 def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:

@@ -200,6 +200,12 @@ class DepthMaps:
                 depth_file_size(filename)
 
 
+def directions_norm(cameras: Cameras, frame: int) -> Tensor:
+    """(H, W, 1) length in camera coordinates of each pixel's ray direction with unit z, as nerfstudio's cameras
+    generate it (distortion included): a rendered distance along the ray over it is z-depth."""
+    return cameras[frame : frame + 1].generate_rays(camera_indices=0, keep_shape=True).metadata[DIRECTIONS_NORM]
+
+
 def depth_errors(rendered: Tensor, truth: Tensor, metres_per_scene_unit: float) -> Tuple[float, float]:
     """Absolute relative error and RMSE (metres) of rendered z-depth against `truth` (same shape, scene units, 0 where
     there is none) over the pixels with depth; NaN for both when there is none."""

@@ -25,7 +25,7 @@ from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from continual_nerf.compilation import input_gradients
-from continual_nerf.core.depth_maps import DIRECTIONS_NORM, DepthMaps, depth_errors
+from continual_nerf.core.depth_maps import DepthMaps, depth_errors, directions_norm
 from continual_nerf.nerfstudio_compat import proposal_sampler_state, set_proposal_sampler_state
 
 
@@ -87,7 +87,7 @@ def frame_depth_errors(
     if depth_maps is None or rendered is None:
         return math.nan, math.nan
     # nerfstudio renders distance along unit rays; a ray's direction norm in camera coordinates turns it into z-depth
-    norms = camera.generate_rays(camera_indices=0, keep_shape=True).metadata[DIRECTIONS_NORM]
+    norms = directions_norm(camera, 0)
     truth = depth_maps.read(frame)[..., None].to(rendered.device)
     return depth_errors(rendered / norms.to(rendered.device), truth, depth_maps.metres_per_scene_unit)
 

@@ -216,8 +216,6 @@ class ContinualNGPModel(NerfactoModel):
                 outputs = super().get_outputs(ray_bundle)
         if self.color_transforms is not None and (self.training or frames is not None):
             outputs["rgb"] = self._as_recorded(outputs["rgb"], ray_bundle)
-        if DIRECTIONS_NORM in ray_bundle.metadata:  # rendered distances along rays to z-depth, for the depth metrics
-            outputs[DIRECTIONS_NORM] = ray_bundle.metadata[DIRECTIONS_NORM]
         return outputs
 
     def _as_recorded(self, rgb: torch.Tensor, ray_bundle: RayBundle) -> torch.Tensor:
@@ -241,7 +239,7 @@ class ContinualNGPModel(NerfactoModel):
         del metrics_dict["lpips"]
         if DEPTH_KEY in batch:  # a capture with depth maps: how far the rendered geometry is from them (ns-eval)
             metres = float(self.kwargs["metadata"][METRES_PER_SCENE_UNIT])
-            z_depth = outputs["depth"] / outputs[DIRECTIONS_NORM]
+            z_depth = outputs["depth"] / batch[DIRECTIONS_NORM].to(outputs["depth"].device)
             truth = batch[DEPTH_KEY].to(z_depth.device)
             metrics_dict["depth_abs_rel"], metrics_dict["depth_rmse"] = depth_errors(z_depth, truth, metres)
         return metrics_dict, images_dict
