@@ -205,7 +205,8 @@ class ContinualPipeline(VanillaPipeline):
 
     @property
     def distills_replay_depth(self) -> bool:
-        """Whether replayed rays get the oracle's rendered depth as their depth target (--pipeline.model.distill-replay-depth)."""
+        """Whether replayed rays get the oracle's rendered depth as their depth target
+        (--pipeline.model.distill-replay-depth)."""
         model = self.config.model
         return isinstance(model, ContinualNGPDepthModelConfig) and model.distill_replay_depth
 

@@ -37,7 +37,7 @@ NUMPY_SUFFIX = ".npy"
 EDGE_TOLERANCE = 1e-6
 """Depth pixels by which a colour pixel's centre may miss an edge between two depth pixels and still count as on it."""
 DEPTH_KEY = "depth_image"
-"""Batch key of the (.., 1) z-depth targets, in scene units, 0 where there is none: nerfstudio's depth models read it."""
+"""Batch key of the (.., 1) z-depth targets in scene units, 0 where there is none: nerfstudio's depth models read it."""
 DIRECTIONS_NORM = "directions_norm"
 """Ray bundle metadata (and model output) key of each ray direction's length in camera coordinates with unit z, as
 nerfstudio's cameras generate it: distance along the ray over z-depth."""

@@ -49,8 +49,8 @@ class ContinualNGPDepthModelConfig(ContinualNGPModelConfig, DepthNerfactoModelCo
         super().validate()
         if self.depth_loss_type not in (DepthLossType.DS_NERF, DepthLossType.URF):
             raise ContinualConfigError(
-                f"--pipeline.model.depth-loss-type {self.depth_loss_type.name} is not supported: the ranking loss needs "
-                "nerfstudio's pair sampler and pseudo-depth; use DS_NERF or URF"
+                f"--pipeline.model.depth-loss-type {self.depth_loss_type.name} is not supported: the ranking loss "
+                "needs nerfstudio's pair sampler and pseudo-depth; use DS_NERF or URF"
             )
         if not self.depth_loss_mult >= 0:
             raise ContinualConfigError(

@@ -47,8 +47,8 @@ class ExperienceReplayBuffer(nn.Module):
 
     @torch.no_grad()
     def add_task(self, task: int, flat: Tensor, rgb: Tensor, total_pixels: int, depth: Optional[Tensor] = None) -> None:
-        """Keep a uniform random subset of closed task `task`'s pixels (`flat`, colours in [0, 1], `depth` when the model
-        trains on it) and shrink the earlier tasks' shares, so that each of the tasks closed so far keeps
+        """Keep a uniform random subset of closed task `task`'s pixels (`flat`, colours in [0, 1], `depth` when the
+        model trains on it) and shrink the earlier tasks' shares, so that each of the tasks closed so far keeps
         capacity / (task + 1) pixels."""
         shares = _equal_shares(self.capacity(total_pixels), task + 1)
         # entries are stored in random order, so the first n of a task are a uniform random subset of its pixels
