@@ -24,7 +24,7 @@ from continual_nerf.core.accuracy_matrix import AccuracyMatrix, DepthRow
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.depth_maps import DEPTH_KEY
-from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, trains_on_depth
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, euclidean_depth_maps, trains_on_depth
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import AlignedEvalCameras, FrameScores, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
@@ -219,7 +219,7 @@ class ContinualPipeline(VanillaPipeline):
         image = batch["image"]
         replayed = ray_bundle[is_replay.to(image.device)]
         if self.distills_replay_depth:
-            rgb, depth = self.replay_oracle.render_with_depth(replayed)
+            rgb, depth = self.replay_oracle.render_with_depth(replayed, euclidean_depth_maps(self.config.model))
             batch[DEPTH_KEY][is_replay] = depth.to(batch[DEPTH_KEY].dtype)
         else:
             rgb = self.replay_oracle.render(replayed)
@@ -355,7 +355,14 @@ class ContinualPipeline(VanillaPipeline):
         frames = datamanager.seen_test_frames()
         depth_maps = datamanager.eval_dataset.depth_maps
         self.eval()
-        scores = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment, depth_maps)
+        scores = evaluate_frames(
+            self.model,
+            datamanager.eval_dataset,
+            frames.tolist(),
+            self.pose_alignment,
+            depth_maps,
+            euclidean_depth_maps(self.config.model),
+        )
         self.train()
         psnr = scores.psnr
         tasks = datamanager.test_task_of_frame()[frames]

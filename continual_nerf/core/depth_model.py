@@ -72,6 +72,12 @@ def trains_on_depth(model: ModelConfig) -> bool:
     return isinstance(model, ContinualNGPDepthModelConfig)
 
 
+def euclidean_depth_maps(model: ModelConfig) -> bool:
+    """Whether the depth maps hold distances along rays rather than z-depth (a depth model's is_euclidean_depth; every
+    continual dataparser's sensors record z-depth)."""
+    return isinstance(model, ContinualNGPDepthModelConfig) and model.is_euclidean_depth
+
+
 class ContinualNGPDepthModel(ContinualNGPModel, DepthNerfactoModel):
     """ContinualNGPModel whose metrics and losses add depth-nerfacto's depth loss (DepthNerfactoModel's methods, next in
     line after ContinualNGPModel's)."""

@@ -59,9 +59,11 @@ def evaluate_frames(
     frames: List[int],
     alignment: Optional[PoseAlignment] = None,
     depth_maps: Optional[DepthMaps] = None,
+    euclidean_depth: bool = False,
 ) -> FrameScores:
     """Per-frame PSNR (dB) and SSIM of full renders of `frames` against their images, each from its pose fitted to
-    its image first when `alignment` is given; and the rendered depth's errors against `depth_maps`, when given."""
+    its image first when `alignment` is given; and the rendered depth's errors against `depth_maps`, when given (which
+    hold z-depth, or distances along rays when `euclidean_depth`)."""
     psnrs, ssims, depth_scores = [], [], []
     for frame in frames:
         camera = dataset.cameras[frame : frame + 1].to(model.device)
@@ -73,23 +75,23 @@ def evaluate_frames(
         rendered, truth = rendered.permute(2, 0, 1)[None], truth.permute(2, 0, 1)[None]
         psnrs.append(peak_signal_noise_ratio(rendered, truth, data_range=1.0))
         ssims.append(structural_similarity_index_measure(rendered, truth, data_range=1.0))
-        depth_scores.append(frame_depth_errors(outputs, camera, depth_maps, frame))
+        depth_scores.append(frame_depth_errors(outputs, camera, depth_maps, frame, euclidean_depth))
     depth = torch.tensor(depth_scores, dtype=torch.float64).view(-1, 2)
     return FrameScores(torch.stack(psnrs).cpu(), torch.stack(ssims).cpu(), depth[:, 0], depth[:, 1])
 
 
 def frame_depth_errors(
-    outputs: Dict[str, Tensor], camera: Cameras, depth_maps: Optional[DepthMaps], frame: int
+    outputs: Dict[str, Tensor], camera: Cameras, depth_maps: Optional[DepthMaps], frame: int, euclidean: bool = False
 ) -> Tuple[float, float]:
-    """Absolute relative error and RMSE (metres) of the frame's rendered z-depth (NaN without depth maps or a depth
+    """Absolute relative error and RMSE (metres) of the frame's rendered depth (NaN without depth maps or a depth
     output: the vanilla NeRF's is depth_fine)."""
     rendered = outputs.get("depth", outputs.get("depth_fine"))
     if depth_maps is None or rendered is None:
         return math.nan, math.nan
-    # nerfstudio renders distance along unit rays; a ray's direction norm in camera coordinates turns it into z-depth
-    norms = directions_norm(camera, 0)
+    if not euclidean:  # nerfstudio renders distance along unit rays; the ray's direction norm turns it into z-depth
+        rendered = rendered / directions_norm(camera, 0).to(rendered.device)
     truth = depth_maps.read(frame)[..., None].to(rendered.device)
-    return depth_errors(rendered / norms.to(rendered.device), truth, depth_maps.metres_per_scene_unit)
+    return depth_errors(rendered, truth, depth_maps.metres_per_scene_unit)
 
 
 def aligned_camera(model: Model, camera: Cameras, image: Tensor, alignment: PoseAlignment, seed: int) -> Cameras:

@@ -239,9 +239,12 @@ class ContinualNGPModel(NerfactoModel):
         del metrics_dict["lpips"]
         if DEPTH_KEY in batch:  # a capture with depth maps: how far the rendered geometry is from them (ns-eval)
             metres = float(self.kwargs["metadata"][METRES_PER_SCENE_UNIT])
-            z_depth = outputs["depth"] / batch[DIRECTIONS_NORM].to(outputs["depth"].device)
-            truth = batch[DEPTH_KEY].to(z_depth.device)
-            metrics_dict["depth_abs_rel"], metrics_dict["depth_rmse"] = depth_errors(z_depth, truth, metres)
+            rendered = outputs["depth"]
+            # distances along rays to z-depth, unless the depth maps hold such distances (a depth model's is_euclidean_depth)
+            if not getattr(self.config, "is_euclidean_depth", False):
+                rendered = rendered / batch[DIRECTIONS_NORM].to(rendered.device)
+            truth = batch[DEPTH_KEY].to(rendered.device)
+            metrics_dict["depth_abs_rel"], metrics_dict["depth_rmse"] = depth_errors(rendered, truth, metres)
         return metrics_dict, images_dict
 
     def get_extra_state(self) -> Dict[str, int]:

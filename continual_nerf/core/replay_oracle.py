@@ -67,12 +67,15 @@ class ReplayOracle(nn.Module):
         return self._outputs(ray_bundle)["rgb"]
 
     @torch.no_grad()
-    def render_with_depth(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Colour (N, 3) as `render`, and the z-depth (N, 1) the copy renders along each ray: its expected depth, 0 (no
-        depth target) where less than half of the ray's light comes from a surface it has learned."""
+    def render_with_depth(self, ray_bundle: RayBundle, euclidean: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Colour (N, 3) as `render`, and the depth (N, 1) the copy renders along each ray: its expected depth as
+        z-depth (or, `euclidean`, as distance along the ray, as the depth maps hold it), 0 (no depth target) where
+        less than half of the ray's light comes from a surface it has learned."""
         outputs = self._outputs(ray_bundle)
-        z_depth = outputs["expected_depth"] / ray_bundle.metadata[DIRECTIONS_NORM]
-        return outputs["rgb"], torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, z_depth, 0.0)
+        depth = outputs["expected_depth"]
+        if not euclidean:
+            depth = depth / ray_bundle.metadata[DIRECTIONS_NORM]
+        return outputs["rgb"], torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, depth, 0.0)
 
     def _outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
         assert self.model is not None, "the replay oracle is used before the first task ended"
