@@ -31,6 +31,7 @@ from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.model_components.scene_colliders import SceneCollider
 from nerfstudio.models.base_model import Model
+from nerfstudio.models.depth_nerfacto import DepthNerfactoModel
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from nerfstudio.utils import writer
@@ -82,6 +83,20 @@ def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:
 def set_proposal_sampler_state(model: NerfactoModel, state: Dict[str, int]) -> None:
     model.proposal_sampler._step = int(state["proposal_step"])
     model.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
+
+
+def depth_sigma(model: DepthNerfactoModel) -> float:
+    """The depth losses' sigma as it stands, which depth-nerfacto decays at every training batch (should_decay_sigma).
+
+    Depends on: `DepthNerfactoModel.depth_sigma`, a tensor attribute (not a buffer: no checkpoint keeps it) that
+    `_get_sigma` (private) replaces by the decayed value at each call. A checkpoint keeps it so that a resumed run
+    continues the schedule where the interrupted one stopped.
+    """
+    return float(model.depth_sigma)
+
+
+def set_depth_sigma(model: DepthNerfactoModel, sigma: float) -> None:
+    model.depth_sigma = torch.tensor([sigma])
 
 
 def sample_rays_as_in_training(model: nn.Module) -> None:

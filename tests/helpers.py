@@ -253,6 +253,24 @@ def edit_transforms(folder: Path, **frame_changes: Dict) -> Dict:
     return meta
 
 
+def depth_millimetres(index: int, width: int = WIDTH, height: int = HEIGHT) -> np.ndarray:
+    """(height, width) uint16 depth map of frame `index`, in millimetres: 1 m + 100 mm per frame + 1 mm per pixel in
+    flat order, so that every value tells its frame and pixel."""
+    return (1000 + 100 * index + np.arange(width * height)).reshape(height, width).astype(np.uint16)
+
+
+def with_depth_maps(folder: Path, width: int = WIDTH, height: int = HEIGHT) -> Path:
+    """A transforms.json capture (write_transforms) given a 16-bit millimetre depth map per frame, depth/frame_<n>.png
+    (depth_file_path, as ns-process-data record3d writes it), of `width` x `height`."""
+    (folder / "depth").mkdir(exist_ok=True)
+    changes = {}
+    for index, number in enumerate(NUMBERS):
+        Image.fromarray(depth_millimetres(index, width, height)).save(folder / "depth" / f"frame_{number}.png")
+        changes[f"frame_{number}"] = {"depth_file_path": f"depth/frame_{number}.png"}
+    edit_transforms(folder, **changes)
+    return folder
+
+
 ALL_MASKED = 6
 """frame_6 (a training frame of task 1 when the capture is cut into 2 tasks) is masked out everywhere."""
 
@@ -343,15 +361,30 @@ def jpeg_bytes(index: int) -> bytes:
     return buffer.getvalue()
 
 
-def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
+SCANNET_DEPTH_SIZE = (WIDTH // 2, HEIGHT // 2)
+"""The generated scenes' depth maps: half the colour images' size (ScanNet's: 640x480 beside 1296x968 colour)."""
+SCANNET_DEPTH_INTRINSIC = np.diag([0.5, 0.5, 1, 1]) @ SCANNET_INTRINSIC
+"""The depth camera of the generated scenes: the colour camera at half the size, so colour pixel (u, v) sees depth
+pixel (u // 2, v // 2)."""
+
+
+def write_exported(
+    folder: Path, poses: np.ndarray, lost: tuple = (), depth_intrinsic: Optional[np.ndarray] = None
+) -> Path:
     """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt; the colour images are 32x24
-    copies of the colour camera's."""
+    copies of the colour camera's. With `depth_intrinsic`, also depth/<i>.png (depth_millimetres, 16x12) and
+    intrinsic/intrinsic_depth.txt."""
     for sub in ("color", "pose", "intrinsic"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", EXPORTED_INTRINSIC)
     for i, pose in enumerate(poses):
         (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
         np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
+    if depth_intrinsic is not None:
+        (folder / "depth").mkdir(exist_ok=True)
+        np.savetxt(folder / "intrinsic" / "intrinsic_depth.txt", depth_intrinsic)
+        for i in range(len(poses)):
+            Image.fromarray(depth_millimetres(i, *SCANNET_DEPTH_SIZE)).save(folder / "depth" / f"{i}.png")
     return folder
 
 
@@ -363,27 +396,29 @@ def write_sens(
     depth_compression: int = 1,
     sparse_depth_bytes: Optional[int] = None,
     intrinsic: np.ndarray = SCANNET_INTRINSIC,
+    sparse_depth_frame: int = 0,
 ) -> Dict[int, bytes]:
-    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
+    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes (every
+    depth frame the same: millimetres 0, 1, 2, ... in flat order, seen by SCANNET_DEPTH_INTRINSIC).
 
-    `sparse_depth_bytes` gives frame 0 a depth block of that size left as a hole (a sparse file), so a
-    reader that loads the depth bytes instead of seeking past them shows in its memory use.
+    `sparse_depth_bytes` gives frame `sparse_depth_frame` a depth block of that size left as a hole (a sparse file),
+    so a reader that loads the depth bytes instead of seeking past them shows in its memory use.
     """
-    depth_w, depth_h = 16, 12
-    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()
+    depth_w, depth_h = SCANNET_DEPTH_SIZE
+    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()  # millimetres: 0 at the first pixel (no depth)
     depth = zlib.compress(depth) if depth_compression == 1 else depth
     name = b"StructureSensor"
     colours = {i: jpeg_bytes(i) for i in range(len(poses))}
     with path.open("wb") as sens:
         sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
-        for matrix in (intrinsic, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
+        for matrix in (intrinsic, np.eye(4), SCANNET_DEPTH_INTRINSIC, np.eye(4)):
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
         sens.write(struct.pack("<ii", color_compression, depth_compression))
         sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))
         sens.write(struct.pack("<f", 1000.0) + struct.pack("<Q", len(poses)))
         for i, pose in enumerate(poses):
             matrix = np.full((4, 4), -np.inf) if i in lost else pose
-            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == 0) else len(depth)
+            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == sparse_depth_frame) else len(depth)
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
             sens.write(struct.pack("<QQ", 1000 * i, 1000 * i + 3) + struct.pack("<QQ", len(colours[i]), depth_size))
             sens.write(colours[i])
@@ -425,13 +460,32 @@ def groundtruth_line(t: float, scale: float = 1.0) -> str:
     return " ".join(f"{v:.9f}" for v in [t, *pose_at(t)[:3, 3], *quaternion])
 
 
+TUM_DEPTH_FACTOR = 5000
+"""TUM's depth PNGs: 5000 per metre."""
+
+
+def tum_depth_metres(index: int) -> float:
+    """The (constant) depth of the `index`-th depth map write_sequence writes: 1 m + 10 cm per map."""
+    return 1.0 + 0.1 * index
+
+
 def write_sequence(
     folder: Path,
     image_times: np.ndarray = IMAGE_TIMES,
     pose_times: np.ndarray = POSE_TIMES,
     groundtruth_lines: Optional[List[str]] = None,
+    depth_times: Optional[np.ndarray] = None,
 ) -> Path:
-    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each."""
+    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each; with `depth_times`, also
+    depth/<t>.png (uniform tum_depth_metres of its place in depth_times, 16-bit, 5000 per metre) and depth.txt."""
+    if depth_times is not None:
+        (folder / "depth").mkdir(parents=True)
+        depth_lines = ["# depth maps", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
+        for i, t in enumerate(depth_times):
+            value = round(tum_depth_metres(i) * TUM_DEPTH_FACTOR)
+            Image.fromarray(np.full((HEIGHT, WIDTH), value, dtype=np.uint16)).save(folder / "depth" / f"{t:.6f}.png")
+            depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+        (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     (folder / "rgb").mkdir(parents=True)
     rgb_lines = ["# color images", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
     for i, t in enumerate(image_times):
@@ -792,6 +846,26 @@ def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
     }
     torch.save(results, output_dir / f"rank{rank}.pt")
     dist.destroy_process_group()
+
+
+class Killed(BaseException):
+    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
+
+
+def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
+    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        if len(calls) < save_number:
+            return real_save(obj, file, *args, **kwargs)
+        buffer = io.BytesIO()
+        real_save(obj, buffer)
+        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise Killed
+
+    monkeypatch.setattr(torch, "save", save)
 
 
 def flip_tensor_bytes(checkpoint: bytes) -> bytes:

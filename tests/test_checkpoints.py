@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import errno
-import io
 import os
 import subprocess
 from pathlib import Path
@@ -11,7 +10,14 @@ from typing import BinaryIO, Callable, Optional
 
 import pytest
 import torch
-from helpers import demo_parser, fill_the_disk_at_checkpoint, flip_tensor_bytes, tiny_config
+from helpers import (
+    Killed,
+    demo_parser,
+    fill_the_disk_at_checkpoint,
+    flip_tensor_bytes,
+    kill_in_the_middle_of_save,
+    tiny_config,
+)
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
@@ -20,10 +26,6 @@ from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.errors import CheckpointError, OutputError
-
-
-class Killed(BaseException):
-    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
 
 
 def three_tasks(run_dir: Path, timestamp: str) -> ContinualTrainerConfig:
@@ -38,22 +40,6 @@ def run(config: ContinualTrainerConfig) -> AccuracyMatrix:
     """ns-train's own training function (it seeds from config.machine.seed); returns the run's accuracy matrix."""
     train_loop(local_rank=0, world_size=1, config=config)
     return AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
-
-
-def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
-    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
-    real_save, calls = torch.save, []
-
-    def save(obj, file, *args, **kwargs) -> None:
-        calls.append(file)
-        if len(calls) < save_number:
-            return real_save(obj, file, *args, **kwargs)
-        buffer = io.BytesIO()
-        real_save(obj, buffer)
-        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
-        raise Killed
-
-    monkeypatch.setattr(torch, "save", save)
 
 
 @pytest.mark.slow

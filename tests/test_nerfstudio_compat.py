@@ -30,6 +30,7 @@ from torch.nn.parallel import DistributedDataParallel
 from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.recipes import set_up_like_ns_train, small_model
 
@@ -50,6 +51,27 @@ def test_proposal_sampler_counters_exist_and_round_trip():
     assert compat.proposal_sampler_state(model) == {"proposal_step": 7, "proposal_steps_since_update": 2}
     model.proposal_sampler.step_cb(11)  # nerfstudio's own callback sets the counter the checkpoint keeps
     assert compat.proposal_sampler_state(model)["proposal_step"] == 11
+
+
+def test_depth_nerfacto_decays_its_sigma_in_an_attribute_no_checkpoint_keeps():
+    config = ContinualNGPDepthModelConfig(
+        compile=False, should_decay_sigma=True, starting_depth_sigma=0.2, sigma_decay_rate=0.5, depth_sigma=0.01
+    )
+    model = small_model(config).setup(scene_box=SCENE_BOX, num_train_data=1)
+    assert compat.depth_sigma(model) == pytest.approx(0.2)
+    assert not any("sigma" in name for name, _ in model.named_buffers()), "nerfstudio made it a buffer: drop the touch"
+    model.train()
+
+    def training_metrics() -> None:
+        rays = random_rays(model, 8)
+        rays.metadata["directions_norm"] = torch.ones(8, 1)
+        model.get_metrics_dict(model(rays), {"image": torch.rand(8, 3), "depth_image": torch.rand(8, 1)})
+
+    training_metrics()
+    assert compat.depth_sigma(model) == pytest.approx(0.1), "depth-nerfacto decays it at every training batch"
+    compat.set_depth_sigma(model, 0.05)
+    training_metrics()
+    assert compat.depth_sigma(model) == pytest.approx(0.025), "and decays the sigma it is given"
 
 
 def test_rays_are_sampled_as_in_training_while_the_model_evaluates():

@@ -2,7 +2,8 @@
 
 The pipeline decides which task is open (`release`); every training batch samples rays uniformly over all
 pixels of the tasks released so far (over the open task alone without replay). Rays of the open task carry
-their pixels; rays of earlier tasks are marked `is_replay`, for the pipeline's replay oracle to supervise (Eq. 4).
+their pixels (and, for a model that trains on depth, their depth); rays of earlier tasks are marked `is_replay`, for
+the pipeline's replay oracle to supervise (Eq. 4).
 """
 
 from __future__ import annotations
@@ -32,10 +33,11 @@ from continual_nerf.core.continual_dataset import (
     check_image_headers,
     check_mask_headers,
 )
+from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
-from continual_nerf.errors import ContinualConfigError
+from continual_nerf.errors import ContinualConfigError, DatasetError
 from continual_nerf.validated_config import ValidatedConfig
 
 
@@ -87,6 +89,8 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     """Not used: rays are sampled one pixel at a time."""
     pixel_sampler: tyro.conf.Suppress[PixelSamplerConfig] = field(default_factory=PixelSamplerConfig)
     """Not used: the datamanager samples the released tasks' pixels itself."""
+    train_depth: tyro.conf.Suppress[bool] = False
+    """Serve the open task's depth maps with its pixels: the pipeline sets it when its model trains on depth."""
 
     def validate(self) -> None:
         super().validate()
@@ -227,13 +231,20 @@ class ContinualDataManager(VanillaDataManager):
         self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval)
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
-        return ContinualDataset(
+        dataset = ContinualDataset(
             subset_outputs(outputs, frames),
             np.zeros_like(task_of_frame) if self.config.joint else task_of_frame,  # joint: one task holds every frame
             scale_factor=self._image_scale(),
             for_training=self.test_mode == "val",
             camera_of_frame=camera_ids(outputs)[frames],
+            serve_depth=self.config.train_depth,
         )
+        if dataset.serve_depth and dataset.depth_maps is None:
+            raise DatasetError(
+                f"{getattr(self.config.dataparser, 'data', 'the capture')}: has no depth maps (ScanNet depth/, TUM "
+                "depth.txt, transforms.json depth_file_path) for the model to train on; train continual-ngp instead"
+            )
+        return dataset
 
     def create_eval_dataset(self) -> TestFrameDataset:
         """The test frames; each is rendered with the appearance code and pose correction of the training frame of
@@ -317,12 +328,17 @@ class ContinualDataManager(VanillaDataManager):
         later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
         check_image_headers(self.train_dataset, later_tasks.tolist())
         check_image_headers(self.eval_dataset, range(len(self.eval_dataset)))
+        if self.train_dataset.serve_depth and self.train_dataset.depth_maps is not None:
+            self.train_dataset.depth_maps.check_headers(later_tasks.tolist())
+        if self.eval_dataset.depth_maps is not None:  # the accuracy matrix measures depth on every test frame
+            self.eval_dataset.depth_maps.check_headers(range(len(self.eval_dataset)))
         if self.train_dataset.mask_filenames is not None:  # closed tasks' too: a resumed run reads them again
             check_mask_headers(self.train_dataset, range(len(self.train_dataset)))
         self.train_dataset.open(self.data_task)
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
-        """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false."""
+        """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false, and
+        `depth_image` (when the model trains on depth) their depth, 0 (none) on replayed rays."""
         if self.train_dataset.open_task != self.data_task:
             self.open_released_task()
         self.train_count += 1
@@ -334,21 +350,40 @@ class ContinualDataManager(VanillaDataManager):
         assert pixels is not None, "the open task's pixels are read above"
         image = torch.empty((len(flat), 3), device=self.device)
         image[current] = pixels[flat[current] - start].to(self.device)
+        depth = self._open_task_depths(flat, current, start)
         if self.replay_buffer is not None and len(self.replay_buffer):
-            self._draw_from_replay_buffer(flat, image, is_replay)
+            self._draw_from_replay_buffer(flat, image, is_replay, depth)
         indices = self.ray_indices(flat)
         ray_bundle = self.train_ray_generator(indices)
-        return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
+        batch = {"image": image, "indices": indices, "is_replay": is_replay}
+        if depth is not None:
+            batch[DEPTH_KEY] = depth[:, None]
+        return ray_bundle, batch
 
-    def _draw_from_replay_buffer(self, flat: torch.Tensor, image: torch.Tensor, is_replay: torch.Tensor) -> None:
-        """Turn --replay-buffer-share of the replayed rays into rays of stored pixels, supervised by their colours."""
+    def _open_task_depths(self, flat: torch.Tensor, current: torch.Tensor, start: int) -> Optional[torch.Tensor]:
+        """Per ray (N,) the depth of its pixel where it is one of the open task's, 0 (no depth target) elsewhere; None
+        when the model does not train on depth."""
+        depths = self.train_dataset.task_depths
+        if depths is None:
+            return None
+        depth = torch.zeros(len(flat), device=self.device)
+        depth[current] = depths[flat[current] - start].to(self.device)
+        return depth
+
+    def _draw_from_replay_buffer(
+        self, flat: torch.Tensor, image: torch.Tensor, is_replay: torch.Tensor, depth: Optional[torch.Tensor]
+    ) -> None:
+        """Turn --replay-buffer-share of the replayed rays into rays of stored pixels, supervised by their colours (and
+        their depth, when the buffer keeps it)."""
         assert self.replay_buffer is not None
         replayed = torch.nonzero(is_replay).view(-1)
         chosen = replayed[: round(len(replayed) * self.config.replay_buffer_share)]
-        stored_flat, stored_rgb = self.replay_buffer.sample(len(chosen))
+        stored_flat, stored_rgb, stored_depth = self.replay_buffer.sample(len(chosen))
         flat[chosen] = stored_flat
         image[chosen] = stored_rgb.to(image.device)
         is_replay[chosen] = False
+        if depth is not None and stored_depth is not None:
+            depth[chosen] = stored_depth.to(depth.device)
 
     def open_task_pixels(self) -> Tuple[torch.Tensor, torch.Tensor]:
         """Flat pixel numbers and colours of the open task's pixels that train, unmasked (what a replay buffer keeps a
@@ -360,6 +395,14 @@ class ContinualDataManager(VanillaDataManager):
             return torch.arange(start, end), pixels
         valid = valid_pixels.contains(torch.arange(start, end))
         return torch.arange(start, end)[valid], pixels[valid]
+
+    def open_task_depths(self, flat: torch.Tensor) -> Optional[torch.Tensor]:
+        """Depth of the open task's pixels `flat` (as open_task_pixels numbers them); None unless depth is served."""
+        depths = self.train_dataset.task_depths
+        if depths is None:
+            return None
+        start, _ = self.train_dataset.open_task_pixel_range()
+        return depths[flat - start]
 
     def total_train_pixels(self) -> int:
         return int(self.train_dataset.pixel_offsets[-1])

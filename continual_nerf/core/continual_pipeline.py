@@ -3,6 +3,7 @@ tasks inside nerfstudio's Trainer loop, through training callbacks, so `ns-train
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -19,11 +20,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
-from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.accuracy_matrix import AccuracyMatrix, DepthRow
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
+from continual_nerf.core.depth_maps import DEPTH_KEY
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, euclidean_depth_maps, trains_on_depth
 from continual_nerf.core.distributed import TaskDecision
-from continual_nerf.core.evaluation import AlignedEvalCameras, PoseAlignment, evaluate_frames
+from continual_nerf.core.evaluation import AlignedEvalCameras, FrameScores, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
@@ -92,6 +95,11 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
                 "--pipeline.model.camera-optimizer.mode need every frame known when training starts; this datamanager "
                 "receives frames while it trains"
             )
+        if trains_on_depth(self.model) and not self.datamanager.frames_known_at_start():
+            raise ContinualConfigError(
+                "a model that trains on depth (continual-ngp-depth) needs a finished capture's depth maps; this "
+                "datamanager receives frames, without depth, while it trains"
+            )
 
 
 @dataclass(frozen=True)
@@ -112,6 +120,9 @@ class ContinualStatus:
     """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
     """Whether the run has trained its last task."""
+    depth_rows: List[List[Optional[float]]] = field(default_factory=list)
+    """The accuracy matrix's depth errors so far: absolute relative error per task after each finished task (None: no
+    test frame with depth); empty for a capture without depth maps."""
 
 
 class ContinualPipeline(VanillaPipeline):
@@ -129,6 +140,9 @@ class ContinualPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
+        # the datamanager reads the open task's depth maps only for a model that trains on them
+        datamanager = dataclasses.replace(config.datamanager, train_depth=trains_on_depth(config.model))
+        config = dataclasses.replace(config, datamanager=datamanager)
         super().__init__(
             config, device, test_mode, world_size_for_vanilla_pipeline(device, world_size), local_rank, grad_scaler
         )
@@ -176,6 +190,7 @@ class ContinualPipeline(VanillaPipeline):
             psnr_rows=[list(row) for row in self.accuracy.psnr],
             mean_psnr=list(self.accuracy.mean_psnr),
             finished=self.accuracy.finished,
+            depth_rows=[list(row) for row in self.accuracy.depth_abs_rel],
         )
 
     def get_train_loss_dict(self, step: int):
@@ -193,12 +208,27 @@ class ContinualPipeline(VanillaPipeline):
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         return model_outputs, loss_dict, metrics_dict
 
+    @property
+    def distills_replay_depth(self) -> bool:
+        """Whether replayed rays get the oracle's rendered depth as their depth target
+        (--pipeline.model.distill-replay-depth)."""
+        model = self.config.model
+        return isinstance(model, ContinualNGPDepthModelConfig) and model.distill_replay_depth
+
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
-        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4)."""
+        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4), and their
+        depth targets with its rendered depth when it distils depth too."""
         is_replay = batch["is_replay"]
-        if is_replay.any():
-            image = batch["image"]
-            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)]).to(image.dtype)
+        if not is_replay.any():
+            return
+        image = batch["image"]
+        replayed = ray_bundle[is_replay.to(image.device)]
+        if self.distills_replay_depth:
+            rgb, depth = self.replay_oracle.render_with_depth(replayed, euclidean_depth_maps(self.config.model))
+            batch[DEPTH_KEY][is_replay] = depth.to(batch[DEPTH_KEY].dtype)
+        else:
+            rgb = self.replay_oracle.render(replayed)
+        image[is_replay] = rgb.to(image.dtype)
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
@@ -302,7 +332,8 @@ class ContinualPipeline(VanillaPipeline):
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
-        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels())
+        depth = self.datamanager.open_task_depths(flat)  # a model that trains on depth keeps it with the pixels
+        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels(), depth)
         if not distributed.is_main():
             return  # every rank keeps its own random share; rank 0's is checkpointed
         CONSOLE.print(
@@ -327,23 +358,36 @@ class ContinualPipeline(VanillaPipeline):
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
         datamanager = self.datamanager
         frames = datamanager.seen_test_frames()
+        depth_maps = datamanager.eval_dataset.depth_maps
         self.eval()
-        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
+        scores = evaluate_frames(
+            self.model,
+            datamanager.eval_dataset,
+            frames.tolist(),
+            self.pose_alignment,
+            depth_maps,
+            euclidean_depth_maps(self.config.model),
+        )
         self.train()
+        psnr = scores.psnr
         tasks = datamanager.test_task_of_frame()[frames]
         seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
         row_psnr = [float(psnr[tasks == j].mean()) for j in seen]
-        row_ssim = [float(ssim[tasks == j].mean()) for j in seen]
+        row_ssim = [float(scores.ssim[tasks == j].mean()) for j in seen]
+        depth = None if depth_maps is None else depth_row(scores, tasks, seen)
         self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
-        self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step)
+        self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step, depth)
         path = self.accuracy.write(output_dir)
         writer.put_dict(
             name="Continual PSNR per task", scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr)}, step=step
         )
         writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
+        if depth is not None and depth.mean_abs_rel is not None:
+            writer.put_scalar(name="Continual mean depth abs rel", scalar=depth.mean_abs_rel, step=step)
         CONSOLE.print(
             f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
-            f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
+            f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB"
+            f"{'' if depth is None else _format_depth(depth)} ({path})"
         )
 
     def _print_summary(self, step: int) -> None:
@@ -356,6 +400,10 @@ class ContinualPipeline(VanillaPipeline):
         CONSOLE.print(f"[bold green]Continual results, {state}:")
         CONSOLE.print(f"Per-task test PSNR: {_format_row(self.accuracy.psnr[-1])}")
         CONSOLE.print(f"Mean test PSNR over all test frames: {self.accuracy.mean_psnr[-1]:.2f} dB")
+        if self.accuracy.depth_abs_rel:
+            CONSOLE.print(f"Per-task test depth abs rel: {_format_errors(self.accuracy.depth_abs_rel[-1], '.3f')}")
+            abs_rel, rmse = self.accuracy.mean_depth_abs_rel[-1], self.accuracy.mean_depth_rmse[-1]
+            CONSOLE.print(f"Mean test depth abs rel {_optional(abs_rel, '.3f')}, RMSE {_optional(rmse, '.3f')} m")
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
         if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
@@ -389,6 +437,37 @@ class ContinualPipeline(VanillaPipeline):
 
 def _format_row(values: List[float]) -> str:
     return "[" + ", ".join(f"{value:.2f}" for value in values) + "] dB"
+
+
+def _optional(value: Optional[float], spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def _format_errors(values: List[Optional[float]], spec: str) -> str:
+    return "[" + ", ".join(_optional(value, spec) for value in values) + "]"
+
+
+def _format_depth(depth: DepthRow) -> str:
+    return (
+        f"; depth abs rel per task {_format_errors(depth.abs_rel, '.3f')}, mean {_optional(depth.mean_abs_rel, '.3f')}"
+        f", RMSE {_optional(depth.mean_rmse, '.3f')} m"
+    )
+
+
+def _mean_of_finite(values: torch.Tensor) -> Optional[float]:
+    """The mean of the values that are not NaN (frames with depth); None when there is none."""
+    finite = values[~torch.isnan(values)]
+    return float(finite.mean()) if len(finite) else None
+
+
+def depth_row(scores: FrameScores, tasks: torch.Tensor, seen: range) -> DepthRow:
+    """The accuracy matrix's depth errors of one row: per task the mean over its test frames with depth."""
+    return DepthRow(
+        abs_rel=[_mean_of_finite(scores.depth_abs_rel[tasks == j]) for j in seen],
+        rmse=[_mean_of_finite(scores.depth_rmse[tasks == j]) for j in seen],
+        mean_abs_rel=_mean_of_finite(scores.depth_abs_rel),
+        mean_rmse=_mean_of_finite(scores.depth_rmse),
+    )
 
 
 def _falling(factor: float, progress: float, start: float) -> float:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -10,9 +10,13 @@ from nerfstudio.models.base_model import Model
 from torch import nn
 
 from continual_nerf.compilation import warm_up
+from continual_nerf.core.depth_maps import DIRECTIONS_NORM
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.nerfstudio_compat import sample_rays_as_in_training
+
+MIN_ACCUMULATION = 0.5
+"""Opacity a replayed ray needs for the oracle's rendered depth to be a depth target (distill_replay_depth)."""
 
 
 class ReplayOracle(nn.Module):
@@ -60,7 +64,21 @@ class ReplayOracle(nn.Module):
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
         """Colour (N, 3) the frozen copy renders along each ray, each ray with the appearance code and refined pose of
         the frame it came from, as training rendered that frame."""
+        return self._outputs(ray_bundle)["rgb"]
+
+    @torch.no_grad()
+    def render_with_depth(self, ray_bundle: RayBundle, euclidean: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Colour (N, 3) as `render`, and the depth (N, 1) the copy renders along each ray: its expected depth as
+        z-depth (or, `euclidean`, as distance along the ray, as the depth maps hold it), 0 (no depth target) where
+        less than half of the ray's light comes from a surface it has learned."""
+        outputs = self._outputs(ray_bundle)
+        depth = outputs["expected_depth"]
+        if not euclidean:
+            depth = depth / ray_bundle.metadata[DIRECTIONS_NORM]
+        return outputs["rgb"], torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, depth, 0.0)
+
+    def _outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
         assert self.model is not None, "the replay oracle is used before the first task ended"
         assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
         ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
-        return self.model(ray_bundle)["rgb"]
+        return self.model(ray_bundle)
