@@ -164,6 +164,16 @@ def set_resume_step(trainer: Trainer, start_step: int) -> None:
     trainer.config.max_num_iterations -= start_step
 
 
+def count_progress_to(last_step: int) -> None:
+    """Make the terminal's progress (% done) and ETA count towards `last_step`, the run's last step plus one.
+
+    Depends on: `writer.setup_local_writer` storing the Trainer's max_num_iterations as `GLOBAL_BUFFER["max_iter"]`,
+    which the local writer divides the step by for "% done" and `writer.put_time` subtracts the step from for the ETA;
+    after `set_resume_step` that count starts at the resumed step, not at 0.
+    """
+    writer.GLOBAL_BUFFER["max_iter"] = last_step
+
+
 def first_step(trainer: Trainer) -> int:
     """The step this process's training loop starts at: 0, or the one after the checkpoint a run resumed from.
 
@@ -364,10 +374,12 @@ def rerender(viewer: Viewer) -> None:
     viewer._trigger_rerender()
 
 
-TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings")
+TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings", "_after_train")
 """Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
-viewer's scene (`_init_viewer_state`, called at the start of `train`) and the viewer's start-up note
-(`_check_viewer_warnings`, called by `setup` right after the viewer starts)."""
+viewer's scene (`_init_viewer_state`, called at the start of `train`), the viewer's start-up note
+(`_check_viewer_warnings`, called by `setup` right after the viewer starts) and the end of training (`_after_train`,
+called by `train` after its loop, which it leaves with `Trainer.step` one past the last step trained when the
+pipeline stopped it: the loop sets `step` before it checks `stop_training`)."""
 
 
 def viewer_camera_message(

@@ -227,6 +227,20 @@ def test_trainer_methods_the_continual_trainer_overrides():
     setup, train = inspect.getsource(Trainer.setup), inspect.getsource(Trainer.train)
     assert setup.index("ViewerState(") < setup.index("self._check_viewer_warnings()"), "called after the viewer starts"
     assert "self._load_checkpoint()" in setup and "self._init_viewer_state()" in train
+    loop = train[train.index("for step in range") :]
+    assert loop.index("self.step = step") < loop.index("if self.stop_training:"), "step moves on before the check"
+    assert "self.save_checkpoint(self.step)" in inspect.getsource(Trainer._after_train)
+
+
+def test_the_terminals_progress_counts_to_the_step_it_is_given():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import writer
+
+    writer.setup_local_writer(LoggingConfig(), max_iter=10)  # what a run resumed at step 30 of 40 has left
+    compat.count_progress_to(40)
+    writer.put_time(name=writer.EventName.ITER_TRAIN_TIME, duration=2.0, step=30, avg_over_steps=True, update_eta=True)
+    assert writer.GLOBAL_BUFFER["events"][writer.EventName.ETA.value] == "20 s, 0.000 ms", "10 steps left of 2 s"
+    assert writer.GLOBAL_BUFFER["max_iter"] == 40, "% done divides the step by it"
 
 
 def test_a_camera_message_makes_a_viser_client_with_that_camera():

@@ -147,6 +147,9 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
 
     accuracy = trainer.pipeline.accuracy
     assert [len(row) for row in accuracy.psnr] == [1, 2, 3, 4] and accuracy.finished
+    assert trainer.step == accuracy.steps[-1], "the run ends at the step the capture's last task ended"
+    checkpoints = sorted(path.name for path in trainer.checkpoint_dir.iterdir())
+    assert checkpoints == [f"step-{step:09d}.ckpt" for step in accuracy.steps], "one per task end, none past it"
     iterations_per_task = np.diff([-1] + accuracy.steps).tolist()
     if idle == "wait":
         assert iterations_per_task == [BUDGET] * 4, "waiting trains exactly the budget on each task"

@@ -35,7 +35,13 @@ from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
-from continual_nerf.nerfstudio_compat import first_step, launch_processes_here, leave_pause, set_resume_step
+from continual_nerf.nerfstudio_compat import (
+    count_progress_to,
+    first_step,
+    launch_processes_here,
+    leave_pause,
+    set_resume_step,
+)
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
 from continual_nerf.viewer.continual_panel import ContinualPanel
@@ -153,6 +159,10 @@ class ContinualTrainer(Trainer):
         """The viewer's continual-learning panel, when the viewer runs."""
         self._resumed_from: Optional[Path] = None
         """The checkpoint folder this run resumed from, if any."""
+        self._last_trained_step: Optional[int] = None
+        """The last step this process trained, once one is."""
+        self._saved_step: Optional[int] = None
+        """The step of the last checkpoint this process saved."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
@@ -163,6 +173,7 @@ class ContinualTrainer(Trainer):
         location = TrainingCallbackLocation
         self.callbacks += [
             TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
+            TrainingCallback([location.AFTER_TRAIN_ITERATION], self._count_trained_step),
             TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
         ]
         if distributed.is_distributed():  # after the panel's: a pause it starts at a task's end holds every rank
@@ -182,6 +193,8 @@ class ContinualTrainer(Trainer):
             torch.use_deterministic_algorithms(True, warn_only=True)
         with one_line_exit(self.config.method_name):
             super().setup(test_mode)
+        # a resumed run's loop counts its iterations from the resumed step: % done and ETA count to the run's end
+        count_progress_to(first_step(self) + self.config.max_num_iterations)
         if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
             # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
             self.viewer_state.viser_server.stop()
@@ -287,6 +300,17 @@ class ContinualTrainer(Trainer):
         )
         raise SystemExit(EXIT_CODES[number])
 
+    def _count_trained_step(self, step: int) -> None:
+        self._last_trained_step = step
+
+    def _after_train(self) -> None:
+        # when the pipeline stops the loop (the last task done before --max-num-iterations, or a capture's end), the
+        # loop has moved `step` on to a step it never trains: the final checkpoint and the step shown are the last one
+        # trained
+        trained = self._last_trained_step
+        self.step = trained if trained is not None else first_step(self) - 1
+        super()._after_train()
+
     def _after_last_step(self, step: int) -> None:
         """Training is over and saved: from now on a signal (the viewer may stay open) ends the process at once."""
         INTERRUPTS.deferring = False
@@ -364,12 +388,15 @@ class ContinualTrainer(Trainer):
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
         """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete."""
+        if step == self._saved_step or step < first_step(self):
+            return  # saved at its task's end already, or no step trained since the run started or resumed
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         save_checkpoint_file(self.checkpoint_state(step), path)
         if self.config.save_only_latest_checkpoint:
             for older in checkpoint_steps(self.checkpoint_dir).values():
                 if older != path:
                     older.unlink()
+        self._saved_step = step
 
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
