@@ -13,7 +13,7 @@ from typing import List, Optional
 
 import numpy as np
 import pytest
-from helpers import demo_parser, replayed, stream_config
+from helpers import RUN_TIMEOUT, demo_parser, replayed, stream_config
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
@@ -87,7 +87,7 @@ class CaptureWriter(threading.Thread):
         write_marker(self.folder, NUM_FRAMES - 1, "end")
 
     def _wait_for_training_in_task(self, task: int) -> None:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + RUN_TIMEOUT  # a hang, not a slow machine
         while not (
             self.pipeline is not None
             and self.pipeline.task.current == task
