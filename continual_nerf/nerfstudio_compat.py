@@ -9,6 +9,7 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 from __future__ import annotations
 
 import dataclasses
+import logging
 import signal
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
@@ -32,6 +33,7 @@ from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
 
+from continual_nerf.core.distributed import lost_a_peer
 from continual_nerf.core.interrupts import EXIT_CODES
 from continual_nerf.errors import first_line
 
@@ -255,10 +257,20 @@ def world_size_for_vanilla_pipeline(device: str, world_size: int) -> int:
 
 _nerfstudio_launch: List[Callable[..., None]] = []
 """nerfstudio's `launch`, once `launch_processes_here` has replaced it."""
+_when_a_process_fails: List[Callable[[], None]] = []
+"""What the launching process does when a process fails (the run folder then says the run failed)."""
+
+PEER_LOST_EXIT = 75
+"""Exit status of a process whose collective failed because another process ended: the launcher names that one."""
 
 
-def launch_processes_here() -> None:
-    """Route `ns-train --machine.num-devices N` (N > 1) through `process_worker` and `launch_reporting_one_line`.
+class ProcessFailed(Exception):
+    """A process's one-line error, for the launching process to print (the process itself prints nothing)."""
+
+
+def launch_processes_here(when_a_process_fails: Callable[[], None]) -> None:
+    """Route `ns-train --machine.num-devices N` (N > 1) through `process_worker` and `launch_reporting_one_line`;
+    `when_a_process_fails` runs in the launching process when a process ends by an error or a signal.
 
     Depends on: `nerfstudio.scripts.train.main` calling `config.save_config()` right before `launch(...)` (with
     keyword arguments), and `main` and `launch` looking up `launch` and `_distributed_worker` among the module's
@@ -266,6 +278,7 @@ def launch_processes_here() -> None:
     """
     from nerfstudio.scripts import train
 
+    _when_a_process_fails[:] = [when_a_process_fails]
     if not _nerfstudio_launch:
         _nerfstudio_launch.append(train.launch)
         train.launch = launch_reporting_one_line
@@ -277,18 +290,43 @@ def launch_reporting_one_line(**launch_arguments: Any) -> None:
 
     Ctrl-C reaches the processes too, and they answer it (process 0 checkpoints the step and prints how to resume):
     the launching process ignores it meanwhile, as nerfstudio's launch would stop them at once, and then exits with
-    their code.
+    their code. torch's warning that it stops the other processes is left out: the one line says so.
     """
     answered_by_processes = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    spawn_log = logging.getLogger("torch.multiprocessing.spawn")
+    spawn_level = spawn_log.level
+    spawn_log.setLevel(logging.ERROR)
     try:
         _nerfstudio_launch[0](**launch_arguments)
     except (ProcessExitedException, ProcessRaisedException) as error:
         if isinstance(error, ProcessExitedException) and error.exit_code in EXIT_CODES.values():
             raise SystemExit(error.exit_code) from None
-        method = launch_arguments["config"].method_name
-        raise SystemExit(f"{method}: error: {first_line(error)}; the other processes were stopped") from None
+        for when_failed in _when_a_process_fails:
+            when_failed()
+        raise SystemExit(failed_process_line(error, launch_arguments["config"].method_name)) from None
     finally:
+        spawn_log.setLevel(spawn_level)
         signal.signal(signal.SIGINT, answered_by_processes)
+
+
+def failed_process_line(error: Exception, method: str) -> str:
+    """The one line that says why the processes stopped: the failed process's own line (ProcessFailed), else how it
+    ended.
+
+    Depends on: torch's mp.spawn putting a failed process's traceback (whose last line is "<exception type>: <its
+    message>") into ProcessRaisedException's message, and ProcessExitedException's first line saying how it ended.
+    """
+    if isinstance(error, ProcessRaisedException):
+        last_line = str(error).strip().splitlines()[-1]
+        reported = f"{ProcessFailed.__module__}.{ProcessFailed.__qualname__}: "
+        if last_line.startswith(reported):
+            return last_line[len(reported) :]
+        return f"{method}: error: process {error.error_index}: {last_line}; the other processes were stopped"
+    if isinstance(error, ProcessExitedException) and error.exit_code == PEER_LOST_EXIT:
+        how = f"process {error.error_index} lost its connection to another process"
+    else:
+        how = first_line(error)
+    return f"{method}: error: {how}; the other processes were stopped"
 
 
 def process_worker(
@@ -303,7 +341,9 @@ def process_worker(
     device_type: Literal["cpu", "cuda", "mps"] = "cuda",
 ) -> Any:
     """nerfstudio's `_distributed_worker` (process group, local group, `main_func`), which on CPU skips its CUDA
-    checks; an error ends the process with one line naming its rank.
+    checks; an error is handed to the launching process as one line naming its rank (ProcessFailed), and a process
+    that failed only because another one ended (its connection to it closed) exits quietly: the launcher names that
+    one.
 
     Depends on: `_distributed_worker` taking these arguments and asserting `torch.cuda.is_available()` and
     `num_devices_per_machine <= torch.cuda.device_count()` before it calls `main_func`, whatever the device type.
@@ -326,8 +366,15 @@ def process_worker(
                 local_rank, train_without_cuda_checks, world_size, num_devices_per_machine, machine_rank, dist_url,
                 config, timeout, device_type,
             )  # fmt: skip
+    except SystemExit as exit_:
+        if isinstance(exit_.code, str):  # a one-line error of the plugin's (bad input, a file it cannot write)
+            raise ProcessFailed(exit_.code) from None
+        raise
     except Exception as error:
-        raise SystemExit(f"{config.method_name}: error: process {rank}: {first_line(error)}") from None
+        if lost_a_peer(error):
+            raise SystemExit(PEER_LOST_EXIT) from None
+        line = f"{config.method_name}: error: process {rank}: {first_line(error)}; the other processes were stopped"
+        raise ProcessFailed(line) from None
 
 
 def remove_frustum(viewer: Viewer, frame: int) -> None:

@@ -62,7 +62,14 @@ def two_process_output(tmp_path_factory: pytest.TempPathFactory) -> Path:
     output_dir = tmp_path_factory.mktemp("two-processes")
     run = two_process_run(output_dir, num_tasks=NUM_TASKS, iterations_per_task=ITERATIONS_PER_TASK)
     assert run.returncode == 0, run.stderr[-3000:]
+    (output_dir / "stdout.txt").write_text(run.stdout)
     return output_dir
+
+
+def test_rank_0_alone_speaks_for_the_run(two_process_output: Path):
+    printed = (two_process_output / "stdout.txt").read_text()
+    for line in ("Saving checkpoints to", "No Nerfstudio checkpoint to load", "Training Finished", "Task 2/3 starts"):
+        assert printed.count(line) == 1, f"{line!r} printed {printed.count(line)} times"
 
 
 def test_two_processes_train_every_task_into_one_accuracy_matrix(two_process_output: Path):
@@ -124,14 +131,17 @@ def test_a_viewer_pause_longer_than_the_timeout_holds_both_ranks(tmp_path: Path)
     assert records(run_dir, 0)["last_step"] == records(run_dir, 1)["last_step"] == 5
 
 
-def test_a_dying_rank_ends_the_run_with_one_line(tmp_path: Path):
-    run = two_process_run(tmp_path, timeout_seconds=20, num_tasks=2, iterations_per_task=20, dying_rank=1)
+@pytest.mark.parametrize("dying_rank", [1, 0])
+def test_a_dying_rank_ends_the_run_with_one_line_and_marks_it_failed(tmp_path: Path, dying_rank: int):
+    run = two_process_run(tmp_path, timeout_seconds=20, num_tasks=2, iterations_per_task=20, dying_rank=dying_rank)
     assert run.returncode != 0
-    last_line = run.stderr.strip().splitlines()[-1]
-    assert (
-        last_line == "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
+    reported = f"process {dying_rank} terminated with signal SIGKILL; the other processes were stopped"
+    assert [line for line in run.stderr.splitlines() if ": error:" in line] == [f"continual-ngp: error: {reported}"], (
+        "the other process, whose connection to it closed, says nothing"
     )
     assert "Traceback" not in run.stderr
+    accuracy = AccuracyMatrix.read(two_process_run_dir(tmp_path) / ACCURACY_MATRIX_FILENAME)
+    assert accuracy.status == "failed", "the run folder says the run did not end well"
 
 
 def test_start_paused_is_refused_with_several_processes(tmp_path: Path):

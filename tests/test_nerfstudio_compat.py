@@ -8,6 +8,7 @@ import random
 import socket
 import threading
 import time
+import traceback
 from datetime import timedelta
 from typing import List
 from unittest import mock
@@ -200,7 +201,7 @@ def test_ns_train_saves_the_config_right_before_launch_and_looks_launch_up_when_
     monkeypatch.setattr(ns_train, "launch", ns_train.launch)
     monkeypatch.setattr(ns_train, "_distributed_worker", ns_train._distributed_worker)
     monkeypatch.setattr(compat, "_nerfstudio_launch", [])
-    compat.launch_processes_here()
+    compat.launch_processes_here(lambda: None)
     assert ns_train.launch is compat.launch_reporting_one_line
     assert ns_train._distributed_worker is compat.process_worker
 
@@ -219,6 +220,28 @@ def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(m
         None, timedelta(seconds=30), "cpu",
     )  # fmt: skip
     assert seen == [((0, 1, None, 0), torch.cuda.is_available())]  # training sees the machine as it is
+
+
+def test_the_launcher_prints_the_failed_process_s_own_line_or_how_it_ended():
+    from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
+
+    from continual_nerf.core.distributed import lost_a_peer
+
+    line = "continual-ngp: error: data/scene: no such folder"
+    try:
+        raise compat.ProcessFailed(line)
+    except compat.ProcessFailed:
+        traceback_text = traceback.format_exc()  # what mp.spawn hands the launching process
+    raised = ProcessRaisedException(f"\n\n-- Process 1 terminated with the following error:\n{traceback_text}", 1, 42)
+    assert compat.failed_process_line(raised, "continual-ngp") == line
+    killed = ProcessExitedException("process 1 terminated with signal SIGKILL", 1, 42, -9, "SIGKILL")
+    assert compat.failed_process_line(killed, "continual-ngp") == (
+        "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
+    )
+    lost = ProcessExitedException("process 0 terminated with exit code 75", 0, 41, compat.PEER_LOST_EXIT)
+    assert "process 0 lost its connection to another process" in compat.failed_process_line(lost, "continual-ngp")
+    gloo = "[gloo/transport/tcp/pair.cc:545] Read error [127.0.0.1]:41659: Connection reset by peer. This is typically"
+    assert lost_a_peer(RuntimeError(gloo)) and not lost_a_peer(RuntimeError("CUDA out of memory"))
 
 
 def test_trainer_methods_the_continual_trainer_overrides():

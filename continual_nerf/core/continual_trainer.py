@@ -31,7 +31,7 @@ from continual_nerf.checkpoints import (
 )
 from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
-from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
@@ -98,7 +98,7 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
         if self.several_processes:
-            launch_processes_here()
+            launch_processes_here(self.mark_failed)
         if self.machine.machine_rank > 0:
             return
         base_dir, source = self.get_base_dir(), self.resume_source()
@@ -118,6 +118,17 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         for folder in (base_dir, source):
             for stale in remove_stale_partials(folder) if folder is not None else []:
                 CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
+
+    def mark_failed(self) -> None:
+        """Say in the run folder that the run ended by an error when a process died without saying so (killed)."""
+        path = self.get_base_dir() / ACCURACY_MATRIX_FILENAME
+        if self.machine.machine_rank > 0 or not path.is_file():
+            return
+        accuracy = AccuracyMatrix.read(path)
+        if accuracy.status == "training":
+            accuracy.status = "failed"
+            with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
+                accuracy.write(self.get_base_dir())
 
     def _holds_another_run(self, base_dir: Path, source: Optional[Path]) -> bool:
         """Whether `base_dir` holds results of a run this one does not continue."""
@@ -152,6 +163,8 @@ class ContinualTrainer(Trainer):
     _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        if not distributed.is_main():
+            CONSOLE.quiet = True  # every process would print the same lines: rank 0 speaks for the run
         self.pause_requested = False
         """With several processes: the viewer asked for a pause, which starts at the end of the iteration."""
         super().__init__(config, local_rank, world_size)

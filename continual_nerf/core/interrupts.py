@@ -16,6 +16,8 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, Callable, Dict, List, Optional
 
+from nerfstudio.utils import comms
+
 EXIT_CODES: Dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143}
 """Exit status per signal, as a shell reports a process the signal ended."""
 
@@ -53,8 +55,9 @@ class Interrupts:
             self.received = number
             self.on_signal()
             return
-        name = signal.Signals(number).name
-        print(f"Stopped by {name}; the checkpoints written so far are kept", file=sys.stderr, flush=True)
+        if comms.is_main_process():  # every process of the run receives Ctrl-C; one says so
+            name = signal.Signals(number).name
+            print(f"Stopped by {name}; the checkpoints written so far are kept", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_CODES[number])
 
     def pending(self) -> bool:
