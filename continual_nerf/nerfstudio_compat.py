@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import signal
+import sys
+import warnings
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import msgspec
@@ -60,6 +63,41 @@ def without_lpips() -> Iterator[None]:
     """
     with mock.patch.object(torchmetrics.image.lpip, "LearnedPerceptualImagePatchSimilarity", _LPIPSNotComputed):
         yield
+
+
+NERFSTUDIO_WARNINGS: Tuple[Tuple[Type[Warning], str, str], ...] = (
+    (FutureWarning, "`torch.jit.script` is deprecated", "torch.jit._script"),
+    (FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated", "nerfstudio.engine.trainer"),
+    (UserWarning, "Using a non-tuple sequence for multidimensional indexing", "nerfstudio.cameras.cameras"),
+    (UserWarning, "Converting a tensor with requires_grad=True to a scalar", "nerfstudio.utils.writer"),
+)
+"""Warnings nerfstudio 1.1.5's own code raises on this torch, every run (its deprecated calls, its camera indexing, its
+writer's loss logging): category, start of the message, module they are raised from (torch.jit._script: nerfstudio's
+@torch.jit.script functions)."""
+
+CPU_WARNINGS: Tuple[Tuple[Type[Warning], str, str], ...] = (
+    (UserWarning, "torch.cuda.amp.GradScaler is enabled, but CUDA is not available", "torch.cuda.amp.grad_scaler"),
+)
+"""On CPU: nerfstudio's Trainer builds a CUDA GradScaler for mixed precision, which it turns off there (and says so)."""
+
+
+def quiet_nerfstudio_warnings(on_cpu: bool) -> None:
+    """Keep the warnings nerfstudio's code raises (NERFSTUDIO_WARNINGS, CPU_WARNINGS on CPU) out of the terminal, each
+    matched by category, message and module: in this process, and in the processes it starts (as -W options, which
+    also cover the warnings they raise while importing nerfstudio). On CPU, torch's log line that no CUDA runtime is
+    found (when torch.compile loads its C++ tools) is left out too.
+
+    Depends on: the messages and modules listed, as nerfstudio 1.1.5 raises them on this torch.
+    """
+    for category, message, module in NERFSTUDIO_WARNINGS + (CPU_WARNINGS if on_cpu else ()):
+        warnings.filterwarnings("ignore", re.escape(message), category, re.escape(module) + r"\Z")
+        option = f"ignore:{message}:{category.__name__}:{module}"  # the same filter, as python -W takes it
+        if option not in sys.warnoptions:
+            sys.warnoptions.append(option)
+    if on_cpu:
+        logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
 
 
 def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:

@@ -6,9 +6,11 @@ from __future__ import annotations
 import inspect
 import random
 import socket
+import sys
 import threading
 import time
 import traceback
+import warnings
 from datetime import timedelta
 from typing import List
 from unittest import mock
@@ -40,6 +42,36 @@ def test_nerfacto_builds_offline_with_lpips_replaced():
     with compat.without_lpips():
         model = NerfactoModelConfig().setup(scene_box=SCENE_BOX, num_train_data=1)
     assert isinstance(model.lpips, compat._LPIPSNotComputed), "nerfstudio no longer builds LPIPS where it is patched"
+
+
+def test_nerfstudio_raises_the_warnings_kept_out_of_the_terminal_and_only_those_are(monkeypatch):
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.configs.base_config import MachineConfig
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    cameras = Cameras(camera_to_worlds=torch.eye(4)[None, :3], fx=10.0, fy=10.0, cx=2.0, cy=2.0, width=4, height=4)
+
+    def raised() -> set:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if quiet:
+                compat.quiet_nerfstudio_warnings(on_cpu=True)
+            cameras.generate_rays(camera_indices=torch.zeros(3, 1, dtype=torch.long), coords=torch.zeros(3, 2))
+            Trainer(
+                TrainerConfig(method_name="nerfacto", mixed_precision=True, machine=MachineConfig(device_type="cpu"))
+            )
+            warnings.warn("a warning of anyone else's", UserWarning)
+        return {str(warning.message).split(".")[0] for warning in caught}
+
+    monkeypatch.setattr(sys, "warnoptions", [])
+    quiet = False
+    assert {"Using a non-tuple sequence for multidimensional indexing is deprecated and will be changed in pytorch 2",
+            "`torch", "torch"} <= raised(), "nerfstudio's camera indexing and its GradScaler on a CPU warn"  # fmt: skip
+    quiet = True
+    assert raised() == {"a warning of anyone else's"}, "kept out by message and module, nothing else"
+    assert "ignore:Using a non-tuple sequence for multidimensional indexing:UserWarning:nerfstudio.cameras.cameras" in (
+        sys.warnoptions
+    ), "the processes ns-train starts get the same filters"
 
 
 def test_proposal_sampler_counters_exist_and_round_trip():

@@ -127,11 +127,25 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
         """Whether every training frame is known when training starts (per-frame codes and poses need it)."""
         return True
 
+    def task_budget_text(self) -> str:
+        """One task's budget, in words (1000 iterations, 20 s)."""
+        if self.seconds_per_task is not None:
+            return f"{self.seconds_per_task:g} s"
+        return plural(self.iterations_per_task, "iteration")
+
+    def describe_tasks(self) -> str:
+        """The tasks and their budget, in words (3 tasks x 1000 iterations)."""
+        return f"{plural(self.num_tasks, 'task')} x {self.task_budget_text()}"
+
     def budgeted_iterations(self) -> Optional[int]:
         """Iterations the whole task budget takes, or None when tasks are timed (or, streaming, counted by the capture)."""
         if self.seconds_per_task is not None:
             return None
         return self.num_tasks * self.iterations_per_task
+
+
+def plural(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
 def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> DataparserOutputs:

@@ -15,6 +15,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.external import TCNN_EXISTS
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.utils.writer import EventName
 from nerfstudio.viewer.viewer import Viewer
@@ -40,6 +41,7 @@ from continual_nerf.nerfstudio_compat import (
     first_step,
     launch_processes_here,
     leave_pause,
+    quiet_nerfstudio_warnings,
     set_resume_step,
 )
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
@@ -84,6 +86,23 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         with one_line_exit(self.method_name):
             return super().setup(**kwargs)
 
+    def print_to_terminal(self) -> None:
+        """What the run does and where it writes, in two lines: nerfstudio's dump of every option (~250 lines) stays in
+        the run folder's config.yml."""
+        datamanager = self.pipeline.datamanager
+        processes = self.machine.num_devices * self.machine.num_machines
+        device = self.machine.device_type + (f" x {processes} processes" if processes > 1 else "")
+        stops = "" if self.max_num_iterations is None else f", at most {self.max_num_iterations} iterations"
+        folder = datamanager.data or getattr(
+            datamanager.dataparser, "data", None
+        )  # ns-train's --data, else the parser's
+        data = ", ".join(str(part) for part in (dataparser_name(datamanager.dataparser), folder) if part)
+        for line in (
+            f"{self.method_name}: {datamanager.describe_tasks()}{stops} on {device}; data: {data}",
+            f"Run folder: {self.get_base_dir()} (config.yml there holds every option)",
+        ):
+            CONSOLE.print(line, markup=False, soft_wrap=True)
+
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes from, if any."""
         if self.load_dir is not None:
@@ -97,6 +116,7 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
         (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
+        quiet_nerfstudio_warnings(on_cpu=self.machine.device_type == "cpu")  # and in the processes ns-train starts
         if self.several_processes:
             launch_processes_here(self.mark_failed)
         if self.machine.machine_rank > 0:
@@ -138,6 +158,14 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return holds_a_run and not (source is not None and source.resolve() == base_dir.resolve())
 
 
+def dataparser_name(dataparser: Any) -> str:
+    """The name `ns-train` knows a dataparser by (continual-demo, ...)."""
+    from nerfstudio.configs.dataparser_configs import all_dataparsers  # discovers the plugins, this one among them
+
+    names = [name for name, config in all_dataparsers.items() if type(config) is type(dataparser)]
+    return names[0] if names else type(dataparser).__name__
+
+
 @contextlib.contextmanager
 def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
     """End the process with one line for bad input (an option, a dataset file, an image of a task released mid-run)
@@ -163,6 +191,7 @@ class ContinualTrainer(Trainer):
     _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        quiet_nerfstudio_warnings(on_cpu=config.machine.device_type == "cpu")
         if not distributed.is_main():
             CONSOLE.quiet = True  # every process would print the same lines: rank 0 speaks for the run
         self.pause_requested = False
@@ -197,6 +226,7 @@ class ContinualTrainer(Trainer):
             )
 
     def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
+        self._use_torch_without_tiny_cuda_nn()
         self.config.max_num_iterations = self._iterations_to_run()
         if self.config.max_num_iterations == UNBOUNDED_ITERATIONS:  # no end known: an ETA would count to the cap
             writer_config = self.config.logging.local_writer
@@ -221,6 +251,22 @@ class ContinualTrainer(Trainer):
             progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
         )
         show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    def _use_torch_without_tiny_cuda_nn(self) -> None:
+        """Build the model's hash grids and MLPs in torch when tiny-cuda-nn is not installed, as nerfstudio falls back
+        to, without its warning block per module and model (twelve in a run: the replay oracle is a second model);
+        on a GPU, one line says what installing it would bring."""
+        model = self.config.pipeline.model
+        if getattr(model, "implementation", None) != "tcnn" or TCNN_EXISTS:
+            return
+        if self.device.startswith("cuda") and distributed.is_main():
+            CONSOLE.print(
+                "tiny-cuda-nn is not installed: the hash grids and MLPs run in torch (pip install "
+                "git+https://github.com/NVlabs/tiny-cuda-nn/#subdirectory=bindings/torch for its fused kernels)",
+                markup=False,
+                soft_wrap=True,
+            )
+        model.implementation = "torch"  # type: ignore[attr-defined]
 
     @property
     def training_state(self) -> TrainingState:

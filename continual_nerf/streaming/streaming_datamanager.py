@@ -66,6 +66,10 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
         """Frames keep arriving while training runs: no per-frame codes or poses for frames not there yet."""
         return False
 
+    def describe_tasks(self) -> str:
+        at_most = f", at most {self.max_tasks}" if self.max_tasks else ""
+        return f"tasks as the capture sends them{at_most}, {self.task_budget_text()} each"
+
     def budgeted_iterations(self) -> Optional[int]:
         """The capture decides how many tasks there are."""
         return None
