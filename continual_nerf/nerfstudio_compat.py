@@ -8,12 +8,14 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import logging
 import re
 import signal
 import sys
 import warnings
+import weakref
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
@@ -31,7 +33,7 @@ from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.model_components.scene_colliders import SceneCollider
 from nerfstudio.models.nerfacto import NerfactoModel
-from nerfstudio.utils import writer
+from nerfstudio.utils import profiler, writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
@@ -212,6 +214,17 @@ def count_progress_to(last_step: int) -> None:
     after `set_resume_step` that count starts at the resumed step, not at 0.
     """
     writer.GLOBAL_BUFFER["max_iter"] = last_step
+
+
+def forget_empty_profile() -> None:
+    """Drop nerfstudio's profile of this process if it timed nothing (set-up ended before training did a step), so
+    that the process ends without an empty "Printing profiling stats" heading.
+
+    Depends on: `nerfstudio.utils.profiler.PROFILER`, the list `Trainer.setup` puts the run's Profiler in and whose
+    first one `flush_profiler` (called by ns-train's launch as it returns) prints, and `Profiler.profiler_dict`.
+    """
+    if profiler.PROFILER and not profiler.PROFILER[0].profiler_dict:
+        profiler.PROFILER.clear()
 
 
 def first_step(trainer: Trainer) -> int:
@@ -432,6 +445,43 @@ def set_render_defaults(viewer: Viewer, max_res: int, train_util: float) -> None
     """
     viewer.control_panel._max_res.value = max_res
     viewer.control_panel._train_util.value = train_util
+
+
+RENDER_STOP_SECONDS = 30.0
+"""How long the process waits at exit for each render thread to end (an interrupted render ends within a line)."""
+
+_rendering_viewers: "weakref.WeakSet[Viewer]" = weakref.WeakSet()
+"""Viewers whose render threads `stop_rendering` ends when the process exits."""
+
+
+def stop_rendering_at_exit(viewer: Viewer) -> None:
+    """End `viewer`'s render threads before the process exits, whatever ends it: a render thread still running torch
+    code while the interpreter shuts down aborts the process ("terminate called without an active exception")."""
+    if not _rendering_viewers:
+        atexit.register(_stop_every_viewer_rendering)
+    _rendering_viewers.add(viewer)
+
+
+def _stop_every_viewer_rendering() -> None:
+    for viewer in list(_rendering_viewers):
+        stop_rendering(viewer)
+    _rendering_viewers.clear()
+
+
+def stop_rendering(viewer: Viewer) -> None:
+    """Stop and wait for the render threads of `viewer` (one per browser), interrupting a render under way.
+
+    Depends on: `Viewer.render_statemachines` (a RenderStateMachine thread per client) and RenderStateMachine's
+    `running` (its loop's condition), `interrupt_render_flag` (ends a render at its next Python line) and
+    `render_trigger` (the event its loop waits on).
+    """
+    machines = list(viewer.render_statemachines.values())
+    for machine in machines:
+        machine.running = False
+        machine.interrupt_render_flag = True
+        machine.render_trigger.set()
+    for machine in machines:
+        machine.join(timeout=RENDER_STOP_SECONDS)
 
 
 def show_step(viewer: Viewer, step: int) -> None:

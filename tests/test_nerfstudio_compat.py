@@ -213,8 +213,38 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         compat.disable_training_buttons(viewer)
         assert viewer.pause_train.disabled and viewer.resume_train.disabled
         compat.rerender(viewer)  # no browser connected: nothing to render, and no error
+        import websocket  # the test extra's
+
+        page = websocket.create_connection(f"ws://127.0.0.1:{config.viewer.websocket_port}", suppress_origin=True)
+        try:
+            page.send_binary(compat.viewer_camera_message(np.ones(3), np.zeros(3), np.array([0, 0, 1.0]), 1.0, 1.4))
+            deadline = time.monotonic() + 120  # a hang, not a slow machine
+            while not viewer.render_statemachines:
+                assert time.monotonic() < deadline, "no render thread for the page"
+                time.sleep(0.05)
+            threads = list(viewer.render_statemachines.values())
+            compat.stop_rendering(viewer)
+            assert not any(thread.is_alive() for thread in threads), "the page's render thread has ended"
+        finally:
+            page.close()
     finally:
         trainer.shutdown()
+
+
+def test_an_empty_profile_is_dropped_and_a_run_s_profile_kept():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import profiler
+
+    profiler.PROFILER[:] = [profiler.Profiler(LoggingConfig())]
+    try:
+        compat.forget_empty_profile()
+        assert profiler.PROFILER == [], "set-up ended before a step: nothing to print"
+        profiler.PROFILER.append(profiler.Profiler(LoggingConfig()))
+        profiler.PROFILER[0].update_time("Trainer.train_iteration", 0.0, 0.5)
+        compat.forget_empty_profile()
+        assert len(profiler.PROFILER) == 1, "a run's timings are kept for nerfstudio to print"
+    finally:
+        profiler.PROFILER.clear()
 
 
 def test_vanilla_pipeline_wraps_with_cuda_device_ids_only_for_several_processes():

@@ -3,12 +3,22 @@ and nothing about tiny-cuda-nn on a CPU."""
 
 from __future__ import annotations
 
+import os
 import re
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import List
 
+import numpy as np
 import pytest
-from helpers import ns_train_command, run_ns_train
+import websocket
+from helpers import SUBPROCESS_ENV, finish, ns_train_command, run_ns_train, wait_while_running
 
-from continual_nerf.nerfstudio_compat import NERFSTUDIO_WARNINGS
+from continual_nerf.bench.browser import free_port, viewer_answers
+from continual_nerf.nerfstudio_compat import NERFSTUDIO_WARNINGS, viewer_camera_message
 
 pytestmark = pytest.mark.slow  # runs ns-train
 
@@ -37,3 +47,64 @@ def test_a_cpu_run_starts_with_a_summary_and_shows_no_warning_about_nerfstudio_s
     assert warned <= RAISED_WHILE_NS_TRAIN_IMPORTS, f"warnings the plugin could have kept out: {warned}"
     assert {message for _, message, _ in NERFSTUDIO_WARNINGS} >= RAISED_WHILE_NS_TRAIN_IMPORTS
     assert "No CUDA runtime is found" not in run.stderr
+
+
+def test_ctrl_c_while_a_capture_s_first_task_is_awaited_ends_with_130_and_one_line(tmp_path):
+    command = ns_train_command(tmp_path, "waiting", [], ["continual-stream", "--data", str(tmp_path / "capture")])
+    command[command.index("continual-ngp")] = "continual-ngp-stream"
+    with (tmp_path / "stdout.txt").open("w") as stdout, (tmp_path / "stderr.txt").open("w") as stderr:
+        run = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=SUBPROCESS_ENV, start_new_session=True)
+        wait_while_running(run, lambda: "Waiting for the first task" in read(tmp_path / "stdout.txt"), "it waits")
+        os.killpg(run.pid, signal.SIGINT)  # as Ctrl-C in a terminal: to every process of the run
+        finish(run, "the interrupted run")
+    assert run.returncode == 130
+    assert said(read(tmp_path / "stderr.txt")) == ["Stopped by SIGINT; the checkpoints written so far are kept"]
+
+
+def test_ctrl_c_while_the_viewer_renders_ends_with_130_not_an_abort(tmp_path):
+    """A render thread still in torch code when the interpreter shuts down aborts the process (SIGABRT, 134)."""
+    port = free_port()
+    viewer = ["--vis", "viewer", "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"]
+    command = ns_train_command(tmp_path, "rendering", [*viewer, "--start-paused", "True"], ["continual-demo"])
+    with (tmp_path / "stdout.txt").open("w") as stdout, (tmp_path / "stderr.txt").open("w") as stderr:
+        run = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=SUBPROCESS_ENV, start_new_session=True)
+        wait_while_running(run, lambda: viewer_answers(port), "the viewer answers")
+        page = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=30, suppress_origin=True)
+        moving = threading.Thread(target=move_the_camera, args=[page, run], daemon=True)
+        moving.start()
+        try:
+            time.sleep(4)
+            os.killpg(run.pid, signal.SIGINT)  # while the viewer renders the moving camera's view
+            finish(run, "the interrupted run")
+        finally:
+            moving.join()
+            page.close()
+    stderr_text = read(tmp_path / "stderr.txt")
+    assert run.returncode == 130, stderr_text[-2000:]
+    assert len(said(stderr_text)) == 1 and "SIGINT" in said(stderr_text)[0]
+
+
+def move_the_camera(page: websocket.WebSocket, run: subprocess.Popen) -> None:
+    """Send the viewer a camera on the move until `run` ends: it renders after each message, one render after the
+    other."""
+    turn = 0
+    while run.poll() is None:
+        angle = turn / 10
+        position = np.array([np.cos(angle), np.sin(angle), 0.5])
+        try:
+            page.send_binary(viewer_camera_message(position, np.zeros(3), np.array([0, 0, 1.0]), 1.0, 1.4))
+        except OSError:  # the viewer has gone with the run
+            return
+        turn += 1
+        time.sleep(0.05)
+
+
+def read(path: Path) -> str:
+    return path.read_text() if path.exists() else ""
+
+
+def said(stderr: str) -> List[str]:
+    """The lines of `stderr` that are not the warnings raised while ns-train imports nerfstudio (nor their source)."""
+    return [
+        line for line in stderr.splitlines() if line.strip() and not line.startswith(" ") and "Warning: " not in line
+    ]

@@ -39,10 +39,12 @@ from continual_nerf.errors import CheckpointError, ContinualConfigError, Continu
 from continual_nerf.nerfstudio_compat import (
     count_progress_to,
     first_step,
+    forget_empty_profile,
     launch_processes_here,
     leave_pause,
     quiet_nerfstudio_warnings,
     set_resume_step,
+    stop_rendering_at_exit,
 )
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
@@ -83,12 +85,21 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return self.machine.num_devices * self.machine.num_machines > 1
 
     def setup(self, **kwargs: Any) -> Any:
-        with one_line_exit(self.method_name):
-            return super().setup(**kwargs)
+        INTERRUPTS.install()  # Ctrl-C while nerfstudio's Trainer starts: no traceback either
+        try:
+            with one_line_exit(self.method_name):
+                return super().setup(**kwargs)
+        finally:
+            INTERRUPTS.restore()
 
     def print_to_terminal(self) -> None:
         """What the run does and where it writes, in two lines: nerfstudio's dump of every option (~250 lines) stays in
-        the run folder's config.yml."""
+        the run folder's config.yml.
+
+        ns-train calls this first, before it saves the config and starts training: from here to the end of the
+        process Ctrl-C ends the run with one line, never a traceback.
+        """
+        INTERRUPTS.install()
         datamanager = self.pipeline.datamanager
         processes = self.machine.num_devices * self.machine.num_machines
         device = self.machine.device_type + (f" x {processes} processes" if processes > 1 else "")
@@ -210,6 +221,9 @@ class ContinualTrainer(Trainer):
         INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
         try:
             self._set_up(test_mode)
+        except BaseException:
+            forget_empty_profile()  # ended before training: nothing to report but why it ended
+            raise
         finally:
             INTERRUPTS.restore()  # train() installs them again: a trainer only set up leaves no handler behind
         location = TrainingCallbackLocation
@@ -303,6 +317,8 @@ class ContinualTrainer(Trainer):
         return panel
 
     def _check_viewer_warnings(self) -> None:
+        if isinstance(self.viewer_state, Viewer):  # nerfstudio calls this right after the viewer starts
+            stop_rendering_at_exit(self.viewer_state)
         # nerfstudio's note says no evaluation runs with the viewer alone: its periodic evaluation does not, but the
         # accuracy matrix is measured at the end of every task whatever --vis says
         if self.config.is_viewer_enabled() and not self.config.is_tensorboard_enabled():
@@ -333,6 +349,7 @@ class ContinualTrainer(Trainer):
         finally:
             INTERRUPTS.restore()
             release_run_folder(self.base_dir)
+            forget_empty_profile()
 
     def _answer_interrupt(self, step: int) -> None:
         """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
