@@ -1,5 +1,5 @@
-"""What `ns-train continual-ngp` shows in a terminal: a short summary first, no warnings about nerfstudio's own code,
-and nothing about tiny-cuda-nn on a CPU."""
+"""What the commands show in a terminal: ns-train's short summary first, no warnings about nerfstudio's own code,
+nothing about tiny-cuda-nn on a CPU, and Ctrl-C ending a run or the viewer with 130 and at most one line."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import os
 import re
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -15,7 +16,16 @@ from typing import List
 import numpy as np
 import pytest
 import websocket
-from helpers import SUBPROCESS_ENV, finish, ns_train_command, run_ns_train, wait_while_running
+from helpers import (
+    SUBPROCESS_ENV,
+    demo_parser,
+    finish,
+    ns_train_command,
+    run_ns_train,
+    tiny_config,
+    train,
+    wait_while_running,
+)
 
 from continual_nerf.bench.browser import free_port, viewer_answers
 from continual_nerf.nerfstudio_compat import NERFSTUDIO_WARNINGS, viewer_camera_message
@@ -108,3 +118,18 @@ def said(stderr: str) -> List[str]:
     return [
         line for line in stderr.splitlines() if line.strip() and not line.startswith(" ") and "Warning: " not in line
     ]
+
+
+def test_ctrl_c_ends_the_finished_run_viewer_with_130_and_no_traceback(tmp_path):
+    config = tiny_config(tmp_path / "outputs", demo_parser(), num_tasks=2, iterations_per_task=2)
+    train(config)
+    port = free_port()
+    viewer = Path(sys.executable).with_name("continual-nerf-viewer")
+    command = [str(viewer), "--load-config", str(config.get_base_dir() / "config.yml"), "--viewer.websocket-port"]
+    with (tmp_path / "stderr.txt").open("w") as stderr:
+        run = subprocess.Popen([*command, str(port)], stdout=subprocess.DEVNULL, stderr=stderr, env=SUBPROCESS_ENV)
+        wait_while_running(run, lambda: viewer_answers(port), "the viewer answers")
+        run.send_signal(signal.SIGINT)
+        finish(run, "the viewer after Ctrl-C")
+    assert run.returncode == 130
+    assert said(read(tmp_path / "stderr.txt")) == [], "Ctrl-C is how it ends: nothing to explain"
