@@ -41,20 +41,20 @@ Variant = Callable[[ContinualTrainerConfig], ContinualTrainerConfig]
 Recipe = Tuple[ContinualTrainerConfig, Optional[Variant]]
 
 
-def _with_buffer(size: float, **options: float) -> Variant:
-    """Experience replay of `size` pixels (a fraction below 1, else a count), with other datamanager `options`."""
+def _with_buffer(fraction: float, **options: float) -> Variant:
+    """Experience replay of a `fraction` of the training pixels, with other datamanager `options`."""
 
     def variant(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
         config.pipeline.datamanager = dataclasses.replace(
-            config.pipeline.datamanager, replay_buffer_size=size, **options
+            config.pipeline.datamanager, replay_buffer_fraction=fraction, **options
         )
         return config
 
     return variant
 
 
-EVERY_PIXEL = 1e9
-"""A replay buffer size (a count of pixels) above any capture's: the buffer keeps every pixel of every closed task."""
+EVERY_PIXEL = 1.0
+"""A replay buffer fraction that keeps every pixel of every closed task."""
 
 
 def _learning_rates_of(source: ContinualTrainerConfig) -> Variant:
