@@ -35,7 +35,7 @@ from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
-from continual_nerf.errors import ContinualConfigError
+from continual_nerf.errors import ContinualConfigError, plural
 from continual_nerf.validated_config import ValidatedConfig
 
 
@@ -170,10 +170,6 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
         return self.num_tasks * self.iterations_per_task
 
 
-def plural(count: int, noun: str) -> str:
-    return f"{count} {noun}{'' if count == 1 else 's'}"
-
-
 def subset_outputs(outputs: DataparserOutputs, frames: np.ndarray) -> DataparserOutputs:
     """The dataparser outputs restricted to `frames`, per-frame metadata included."""
     num_frames = len(outputs.image_filenames)
@@ -263,7 +259,8 @@ class ContinualDataManager(VanillaDataManager):
 
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
-        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval)
+        source = str(getattr(self.config.dataparser, "data", "the capture"))
+        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval, source)
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
         return ContinualDataset(
