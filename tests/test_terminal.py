@@ -133,3 +133,16 @@ def test_ctrl_c_ends_the_finished_run_viewer_with_130_and_no_traceback(tmp_path)
         finish(run, "the viewer after Ctrl-C")
     assert run.returncode == 130
     assert said(read(tmp_path / "stderr.txt")) == [], "Ctrl-C is how it ends: nothing to explain"
+
+
+def test_the_default_device_without_a_gpu_is_one_line_saying_to_add_the_cpu_option(tmp_path):
+    command = ns_train_command(tmp_path, "no-gpu", [], ["continual-demo"])
+    device = command.index("--machine.device-type")
+    del command[device : device + 2]  # the README's command for one's own images names no device
+    run = run_ns_train(command)
+    assert run.returncode != 0
+    assert said(run.stderr) == [
+        "continual-ngp: error: --machine.device-type cuda (the default): torch finds no CUDA GPU here; add "
+        "--machine.device-type cpu to train on the CPU"
+    ]
+    assert not (tmp_path / "unnamed").exists(), "a run that cannot start leaves no run folder"

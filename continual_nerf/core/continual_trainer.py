@@ -78,6 +78,12 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         if self.start_paused and self.several_processes:
             # the other processes would wait for rank 0's first step in a collective that times out
             raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
+        if self.machine.device_type == "cuda" and not torch.cuda.is_available():
+            # as nerfstudio, no silent change of device: a CPU run of the default budget takes hours, not minutes
+            raise ContinualConfigError(
+                "--machine.device-type cuda (the default): torch finds no CUDA GPU here; add --machine.device-type cpu "
+                "to train on the CPU"
+            )
 
     @property
     def several_processes(self) -> bool:
@@ -128,6 +134,8 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
         quiet_nerfstudio_warnings(on_cpu=self.machine.device_type == "cpu")  # and in the processes ns-train starts
+        with one_line_exit(self.method_name):
+            self.validate()  # before the run folder is made: a run that cannot start leaves nothing behind
         if self.several_processes:
             launch_processes_here(self.mark_failed)
         if self.machine.machine_rank > 0:
