@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import websocket
 from helpers import (
+    RUN_TIMEOUT,
     SUBPROCESS_ENV,
     demo_parser,
     finish,
@@ -146,3 +147,16 @@ def test_the_default_device_without_a_gpu_is_one_line_saying_to_add_the_cpu_opti
         "--machine.device-type cpu to train on the CPU"
     ]
     assert not (tmp_path / "unnamed").exists(), "a run that cannot start leaves no run folder"
+
+
+def test_the_demo_scene_s_options_are_in_its_subcommand_s_help():
+    ns_train = str(Path(sys.executable).with_name("ns-train"))
+    shown = subprocess.run(
+        [ns_train, "continual-ngp", "continual-demo", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=RUN_TIMEOUT,
+        check=False,
+    )
+    assert shown.returncode == 0, shown.stderr[-2000:]
+    assert "--num-frames" in shown.stdout and "--scene" in shown.stdout
