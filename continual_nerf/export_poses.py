@@ -27,8 +27,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.per_frame import TRAINING_FRAME, refined_poses
-from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS, HELD_OUT
 from continual_nerf.dataparsers.transforms_json import CAMERA_MODEL_OF_TYPE, DISTORTION_KEYS
+from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS, HELD_OUT
 from continual_nerf.nerfstudio_compat import without_lpips
 
 

@@ -8,17 +8,19 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 
 from __future__ import annotations
 
+import asyncio
 import atexit
 import dataclasses
 import logging
 import re
 import signal
 import sys
+import threading
 import warnings
 import weakref
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
+from typing import Any, Callable, Dict, Iterator, List, Literal, Mapping, Optional, Tuple, Type
 from unittest import mock
 
 import msgspec
@@ -26,23 +28,29 @@ import numpy as np
 import torch
 import torchmetrics.image.lpip
 import viser.transforms as vtf
+import websockets.server
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.model_components.scene_colliders import SceneCollider
+from nerfstudio.models.base_model import Model
 from nerfstudio.models.nerfacto import NerfactoModel
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from nerfstudio.utils import profiler, writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
+from websockets.legacy.server import serve as legacy_serve
 
-from continual_nerf.core.distributed import lost_a_peer
-from continual_nerf.core.interrupts import EXIT_CODES
 from continual_nerf.errors import first_line
+from continual_nerf.interrupts import EXIT_CODES
 
 __all__ = ["VISER_NERFSTUDIO_SCALE_RATIO"]
+
+TrainingState = Literal["training", "paused", "completed"]
 
 
 class _LPIPSNotComputed(nn.Module):
@@ -311,6 +319,9 @@ _nerfstudio_launch: List[Callable[..., None]] = []
 _when_a_process_fails: List[Callable[[], None]] = []
 """What the launching process does when a process fails (the run folder then says the run failed)."""
 
+PEER_CLOSED = ("Connection closed by peer", "Connection reset by peer", "Broken pipe")
+"""gloo's words for a connection another process closed by ending (its collectives then fail in every process)."""
+
 PEER_LOST_EXIT = 75
 """Exit status of a process whose collective failed because another process ended: the launcher names that one."""
 
@@ -378,6 +389,14 @@ def failed_process_line(error: Exception, method: str) -> str:
     else:
         how = first_line(error)
     return f"{method}: error: {how}; the other processes were stopped"
+
+
+def lost_a_peer(error: BaseException) -> bool:
+    """Whether `error` is a collective failing because another process ended: that process's end is the cause.
+
+    Depends on: gloo's messages for a closed connection (PEER_CLOSED), as torch raises them in a RuntimeError.
+    """
+    return isinstance(error, RuntimeError) and any(words in str(error) for words in PEER_CLOSED)
 
 
 def process_worker(
@@ -511,10 +530,10 @@ def rerender(viewer: Viewer) -> None:
 
 TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings", "_after_train")
 """Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
-viewer's scene (`_init_viewer_state`, called at the start of `train`), the viewer's start-up note
-(`_check_viewer_warnings`, called by `setup` right after the viewer starts) and the end of training (`_after_train`,
-called by `train` after its loop, which it leaves with `Trainer.step` one past the last step trained when the
-pipeline stopped it: the loop sets `step` before it checks `stop_training`)."""
+viewer's start-up note (`_check_viewer_warnings`, called by `setup` right after the viewer starts) and the end of
+training (`_after_train`, called by `train` after its loop, which it leaves with `Trainer.step` one past the last step
+trained when the pipeline stopped it: the loop sets `step` before it checks `stop_training`); `LiveViewerTrainer`
+overrides the viewer's scene (`_init_viewer_state`, called at the start of `train`)."""
 
 
 def viewer_camera_message(
@@ -551,3 +570,130 @@ def viewer_render_rays_per_second() -> Optional[float]:
     """
     event = writer.GLOBAL_BUFFER.get("events", {}).get(writer.EventName.VIS_RAYS_PER_SEC.value)
     return None if event is None else float(event["avg"])
+
+
+class DeferredPauseTrainer(Trainer):
+    """nerfstudio's Trainer whose pause can wait for the end of the running iteration (`pause_waits`), and which says
+    when its training state changes (`training_state_changed`).
+
+    Depends on: `Trainer.__init__` assigning `self.training_state`, the viewer's Pause / Resume buttons assigning it
+    from the viewer's thread (`Viewer._toggle_training_state`), and `Trainer.train` waiting before each iteration
+    while it is "paused": a property stands in for nerfstudio's attribute.
+    """
+
+    pause_requested = False
+    """A pause asked for while `pause_waits()`: it starts at the end of the iteration (`pause_now`)."""
+    _training_state: TrainingState
+
+    @property
+    def training_state(self) -> TrainingState:
+        return self._training_state
+
+    @training_state.setter
+    def training_state(self, state: TrainingState) -> None:
+        if state == "paused" and self.pause_waits():
+            self.pause_requested = True
+        else:
+            self._training_state = state
+        self.training_state_changed()
+
+    def pause_waits(self) -> bool:
+        """Whether a pause waits for the end of the running iteration instead of stopping the loop before the next."""
+        return False
+
+    def training_state_changed(self) -> None:
+        """Called whenever `training_state` is assigned or a requested pause starts, from the thread that did it."""
+
+    def pause_now(self) -> bool:
+        """Whether training pauses (or stays paused) from this iteration's end: a requested pause starts here."""
+        if self.pause_requested:
+            self._training_state = "paused"
+            self.pause_requested = False
+            self.training_state_changed()
+        return self._training_state == "paused" and not self.stop_training
+
+
+def wrap_model(pipeline: VanillaPipeline, wrap: Callable[[nn.Module], nn.Module]) -> None:
+    """Make the pipeline train `wrap(model)` (the CPU processes' DDP wrapper); `pipeline.model` stays the model.
+
+    Depends on: `VanillaPipeline` keeping the model it trains in `_model` (where nerfstudio puts its own DDP wrapper on
+    CUDA) and its `model` property unwrapping a wrapper's `module`.
+    """
+    pipeline._model = wrap(pipeline._model)  # type: ignore[assignment]
+
+
+def trained_model(pipeline: VanillaPipeline) -> nn.Module:
+    """The model as training calls it: with several processes, the DDP wrapper whose backward all-reduces gradients.
+
+    Depends on: `VanillaPipeline._model`, as `wrap_model`.
+    """
+    return pipeline._model
+
+
+def model_keys_of_one_process(pipeline: VanillaPipeline, state: Mapping[str, Any]) -> Dict[str, Any]:
+    """The pipeline's state dict `state` with the model's keys as one process has them (no DDP `module.`).
+
+    Depends on: `VanillaPipeline` registering its model as `_model` (state-dict keys `_model.`) and DDP keeping the
+    wrapped model as `module`.
+    """
+    if pipeline.model is pipeline._model:
+        return dict(state)
+    wrapped = "_model.module."
+    return {("_model." + key[len(wrapped) :] if key.startswith(wrapped) else key): v for key, v in state.items()}
+
+
+def cameras_as_parsed(dataset: InputDataset) -> Cameras:
+    """The dataset's cameras as the dataparser gave them: the sizes of the image files, before the dataset's
+    downscale (`dataset.cameras` has that applied).
+
+    Depends on: `InputDataset` keeping the DataparserOutputs it was built from in `_dataparser_outputs`.
+    """
+    return dataset._dataparser_outputs.cameras
+
+
+@contextmanager
+def viewer_answering_when_ready() -> Iterator[None]:
+    """Viser servers started inside the context hold every request (the page and its websocket) until it exits: a
+    browser that opens the viewer meanwhile waits, then gets the page as complete as the context built it.
+
+    Depends on: viser 0.2.7's `infra.WebsockServer` serving its page and its websocket through
+    `websockets.server.serve(..., process_request=...)` (an alias of websockets' legacy server), called while its `ViserServer`
+    is constructed. Held requests have no handshake timeout (websockets' is 10 s; set-up may take longer).
+    """
+    ready = threading.Event()
+
+    def serve_when_ready(*args: Any, process_request: Optional[Callable[..., Any]] = None, **kwargs: Any) -> Any:
+        async def when_ready(path: str, headers: Any) -> Any:
+            while not ready.is_set():
+                await asyncio.sleep(0.05)
+            return None if process_request is None else await process_request(path, headers)
+
+        return legacy_serve(*args, **{**kwargs, "process_request": when_ready, "open_timeout": None})
+
+    try:
+        with mock.patch.object(websockets.server, "serve", serve_when_ready):
+            yield
+    finally:
+        ready.set()
+
+
+def watch_viewer_renders(model: Model, rendered: Callable[[Cameras, bool], None]) -> None:
+    """Call `rendered(camera, completed)` after each render the viewer makes with `model`; `completed` is False for a
+    render the viewer interrupted (the camera moved, a rerender was asked for).
+
+    Depends on: the viewer's render thread (`RenderStateMachine._render_img`) rendering through
+    `viewer.get_model().get_outputs_for_camera(camera, obb_box=...)`, looked up on the model instance, and raising out
+    of it to interrupt a render.
+    """
+    render = model.get_outputs_for_camera
+
+    def render_and_say(camera: Cameras, **options: Any) -> Dict[str, torch.Tensor]:
+        completed = False
+        try:
+            outputs = render(camera, **options)
+            completed = True
+            return outputs
+        finally:
+            rendered(camera, completed)
+
+    model.get_outputs_for_camera = render_and_say  # type: ignore[method-assign]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from matplotlib import colormaps
@@ -21,17 +21,26 @@ def task_colour_float(task: int) -> Tuple[float, float, float]:
     return red / 255, green / 255, blue / 255
 
 
-def draw_accuracy_matrix(axes: Axes, psnr: Sequence[Sequence[float]], num_tasks: int) -> AxesImage:
+def draw_accuracy_matrix(
+    axes: Axes,
+    psnr: Sequence[Sequence[float]],
+    num_tasks: int,
+    value_format: Optional[str] = "{:.1f}",
+    value_size: float = 7,
+) -> AxesImage:
     """Heat map of R[i][j] (PSNR of task j after training task i) on `axes`, blank above the diagonal for unseen
-    tasks, the values written in the cells while they fit and the task numbers in the task colours."""
+    tasks, the values written in the cells in `value_format` (None: not written; neither beyond 12 tasks), in black
+    on the bright end of the colour map, and the task numbers in the task colours."""
     matrix = np.full((max(len(psnr), 1), num_tasks), np.nan)
     for i, row in enumerate(psnr):
         matrix[i, : len(row)] = row
     image = axes.imshow(matrix, cmap="viridis", aspect="auto")
-    if num_tasks <= 12:
+    if value_format is not None and num_tasks <= 12:
+        bright = np.asarray(image.norm(matrix)) > 0.6
         for (i, j), value in np.ndenumerate(matrix):
             if not np.isnan(value):
-                axes.text(j, i, f"{value:.1f}", ha="center", va="center", color="white", fontsize=7)
+                colour = "black" if bright[i, j] else "white"
+                axes.text(j, i, value_format.format(value), ha="center", va="center", color=colour, fontsize=value_size)
     axes.set_xticks(range(num_tasks), [str(j + 1) for j in range(num_tasks)])
     axes.set_yticks(range(len(matrix)), [str(i + 1) for i in range(len(matrix))])
     for j, label in enumerate(axes.get_xticklabels()):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import colorsys
+import dataclasses
 from pathlib import Path
 from typing import List, Tuple
 
@@ -12,7 +14,7 @@ from helpers import DEMO_CACHE
 from PIL import Image
 
 from continual_nerf.core.task_split import split_into_tasks
-from continual_nerf.dataparsers import demo_capture
+from continual_nerf.dataparsers import demo_capture, demo_scene
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
 
@@ -139,3 +141,32 @@ def test_the_rig_shares_one_pose_error_per_instant():
     outputs = demo(scene="street", pose_noise_translation=0.02).setup().get_dataparser_outputs("train")
     shift = (outputs.cameras.camera_to_worlds - clean_outputs.cameras.camera_to_worlds)[:, :, 3].view(8, 3, 3)
     assert torch.allclose(shift, shift[:, :1].expand(8, 3, 3), atol=1e-6) and shift.abs().max() > 1e-3
+
+
+@pytest.mark.parametrize(("scene", "cameras", "default_frames"), [("rooms", 1, 480), ("long-street", 3, 480)])
+def test_the_long_scenes_never_revisit_and_every_task_has_train_and_test_frames(scene, cameras, default_frames):
+    config = ContinualDemoDataParserConfig(data=DEMO_CACHE, scene=scene, num_frames=40, width=16, height=12)
+    assert dataclasses.replace(config, num_frames=None).frames == default_frames
+    outputs = config.setup().get_dataparser_outputs(split="train")
+    assert len(outputs.image_filenames) == 40 * cameras
+    x = outputs.cameras.camera_to_worlds[::cameras, 0, 3]
+    assert bool((x[1:] > x[:-1]).all()), "the path only goes forward: no place is seen again later"
+    assert float(outputs.cameras.camera_to_worlds[:, :, 3].abs().max()) <= 1.0, "it fits nerfstudio's box"
+    groups = outputs.metadata["time_group"].numpy() if cameras > 1 else None
+    split = split_into_tasks(len(outputs.image_filenames), 10, 4, time_group=groups)
+    assert all(len(frames) > 0 for frames in (*split.train_frames, *split.test_frames))
+
+
+def test_the_long_scenes_are_longer_than_the_short_ones_and_look_different_along_them():
+    short = demo(scene="room").setup().capture().scene
+    long = demo(scene="rooms").setup().capture().scene
+    assert float(long.hi[0] - long.lo[0]) >= 3.5 * float(short.hi[0] - short.lo[0])
+    outputs = demo(num_frames=16, scene="rooms").setup().get_dataparser_outputs(split="train")
+    first, last = pixels(outputs.image_filenames[0]), pixels(outputs.image_filenames[-1])
+    assert np.abs(first - last).mean() > 10, "the last room does not look like the first"
+
+
+def test_the_vectorised_hue_gives_colorsys_colours_to_the_last_bit():
+    hues = np.random.default_rng(0).uniform(0.0, 0.999, size=(50, 7))
+    expected = np.array([colorsys.hsv_to_rgb(h, 0.55, 0.95) for h in hues.ravel()]).reshape(50, 7, 3)
+    assert np.array_equal(demo_scene.hsv_to_rgb(hues, 0.55, 0.95), expected)

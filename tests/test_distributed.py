@@ -32,9 +32,9 @@ from helpers import (
 
 from continual_nerf.checkpoints import checkpoint_steps, read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.dataparsers.capture_folder import CaptureTasks, StreamFrame
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.streaming.capture_folder import CaptureTasks, StreamFrame
 
 pytestmark = pytest.mark.slow  # trains models in subprocesses
 

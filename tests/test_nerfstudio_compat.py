@@ -23,11 +23,12 @@ from helpers import demo_parser, tiny_config, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.engine.trainer import Trainer
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.field_components.embedding import Embedding
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
 from torch import nn
+from torch.nn.parallel import DistributedDataParallel
 
 from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
@@ -287,8 +288,6 @@ def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(m
 def test_the_launcher_prints_the_failed_process_s_own_line_or_how_it_ended():
     from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
 
-    from continual_nerf.core.distributed import lost_a_peer
-
     line = "continual-ngp: error: data/scene: no such folder"
     try:
         raise compat.ProcessFailed(line)
@@ -303,7 +302,7 @@ def test_the_launcher_prints_the_failed_process_s_own_line_or_how_it_ended():
     lost = ProcessExitedException("process 0 terminated with exit code 75", 0, 41, compat.PEER_LOST_EXIT)
     assert "process 0 lost its connection to another process" in compat.failed_process_line(lost, "continual-ngp")
     gloo = "[gloo/transport/tcp/pair.cc:545] Read error [127.0.0.1]:41659: Connection reset by peer. This is typically"
-    assert lost_a_peer(RuntimeError(gloo)) and not lost_a_peer(RuntimeError("CUDA out of memory"))
+    assert compat.lost_a_peer(RuntimeError(gloo)) and not compat.lost_a_peer(RuntimeError("CUDA out of memory"))
 
 
 def test_trainer_methods_the_continual_trainer_overrides():
@@ -391,3 +390,93 @@ def test_nerfacto_gives_per_ray_appearance_codes_while_training_and_their_mean_o
         assert (rendered(0) - rendered(1)).abs().max() > 1e-4, "each ray gets its frame's code"
         assert not model.proposal_networks.training, "only the field's own flag is set"
     assert not model.field.training
+
+
+class Pausing(compat.DeferredPauseTrainer):
+    """A trainer whose pauses wait for the end of the iteration, counting the state changes it is told of."""
+
+    changes = 0
+
+    def pause_waits(self) -> bool:
+        return True
+
+    def training_state_changed(self) -> None:
+        self.changes += 1
+
+
+def test_the_trainer_s_training_state_is_an_attribute_a_property_can_stand_in_for(tmp_path):
+    from nerfstudio.viewer.viewer import Viewer
+
+    assert "self.training_state: Literal" in inspect.getsource(Trainer.__init__)
+    assert 'while self.training_state == "paused":' in inspect.getsource(Trainer.train)
+    assert 'self.trainer.training_state = "paused"' in inspect.getsource(Viewer), "the Pause button assigns it"
+    trainer = Pausing(TrainerConfig(output_dir=tmp_path, method_name="pausing", experiment_name="test"))
+    assert trainer.training_state == "training" and trainer.changes == 1, "nerfstudio's __init__ went through it"
+    trainer.training_state = "paused"
+    assert trainer.training_state == "training" and trainer.pause_requested, "the pause waits for the iteration's end"
+    trainer.stop_training = False
+    assert trainer.pause_now() and trainer.training_state == "paused" and trainer.changes == 3
+
+
+class Wrapper(DistributedDataParallel):
+    """A DDP wrapper without a process group: the wrapped model as `module`."""
+
+    def __init__(self, module: nn.Module) -> None:
+        nn.Module.__init__(self)
+        self.module = module
+
+
+def test_the_pipeline_trains_the_model_it_keeps_as_model_and_unwraps_it():
+    pipeline = VanillaPipeline.__new__(VanillaPipeline)  # only what the model's keeping needs
+    nn.Module.__init__(pipeline)
+    model = nn.Linear(2, 1)
+    pipeline._model = model  # as VanillaPipeline.__init__ keeps it
+    assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+    compat.wrap_model(pipeline, Wrapper)
+    assert pipeline.model is model, "nerfstudio's `model` unwraps the wrapper's module"
+    assert isinstance(compat.trained_model(pipeline), Wrapper)
+    assert set(pipeline.state_dict()) == {"_model.module.weight", "_model.module.bias"}
+    assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+
+
+def test_a_dataset_keeps_the_cameras_as_parsed_before_its_downscale(tmp_path):
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+    from nerfstudio.data.datasets.base_dataset import InputDataset
+
+    cameras = Cameras(camera_to_worlds=torch.eye(4)[None, :3], fx=10.0, fy=10.0, cx=8.0, cy=6.0, width=16, height=12)
+    outputs = DataparserOutputs(image_filenames=[tmp_path / "frame.png"], cameras=cameras, scene_box=SCENE_BOX)
+    dataset = InputDataset(outputs, scale_factor=0.5)
+    assert int(dataset.cameras.width[0]) == 8, "the dataset's own cameras are downscaled"
+    assert int(compat.cameras_as_parsed(dataset).width[0]) == 16
+
+
+def test_a_viser_server_started_while_held_answers_once_released():
+    import viser
+
+    from continual_nerf.bench.browser import viewer_answers
+
+    port = _free_port()
+    with compat.viewer_answering_when_ready():
+        server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+        assert not viewer_answers(port), "the page answered while the context was building it"
+    try:
+        assert viewer_answers(port), "the page did not answer once released"
+    finally:
+        server.stop()
+
+
+def test_the_viewer_renders_through_the_model_s_get_outputs_for_camera():
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    assert "self.viewer.get_model().get_outputs_for_camera(camera, obb_box=obb)" in inspect.getsource(
+        RenderStateMachine._render_img
+    )
+    model = small_model(ContinualNGPModelConfig(compile=False)).setup(scene_box=SCENE_BOX, num_train_data=1)
+    model.get_outputs_for_camera = mock.Mock(side_effect=[{"rgb": torch.zeros(1)}, RuntimeError("interrupted")])
+    seen = []
+    compat.watch_viewer_renders(model, lambda camera, completed: seen.append((camera, completed)))
+    model.get_outputs_for_camera("camera 1", obb_box=None)
+    with pytest.raises(RuntimeError):
+        model.get_outputs_for_camera("camera 2", obb_box=None)
+    assert seen == [("camera 1", True), ("camera 2", False)]

@@ -1,44 +1,66 @@
-"""The benchmarks' --variants (bench.quality, bench.throughput): configurations of a user's own, as ns-train options."""
+"""The benchmarks' grid (bench.grid, bench.quality, bench.throughput): recipes as ns-train arguments, every run's
+options, runs read back only when trained with the same arguments."""
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from helpers import DEMO_CACHE
+from PIL import Image
 
-from continual_nerf.bench.demo_runs import parse_variant
-from continual_nerf.bench.quality import RECIPES, QualityBenchmark, RunSummary, Setting, folder_name
+from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
+from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_against_tasks, total
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.method_configs import CONTINUAL_NGP
 
 
-def test_a_variant_is_the_registered_method_with_its_options():
-    name, config = parse_variant(
-        "joint, table 2^19=continual-ngp-joint --pipeline.model.log2-hashmap-size 19 --pipeline.lr-decay-per-task 0.3"
+def config_of(bench: QualityBenchmark, recipe: Recipe, scene: str = "room", setting: str = "3x7"):
+    (run,) = bench.runs(scene, Setting.parse(setting), [recipe])
+    return bench.config(run)
+
+
+def test_a_variant_is_the_registered_method_with_its_options_as_ns_train_parses_them(tmp_path: Path):
+    recipe = parse_recipe(
+        "joint, big=continual-ngp-joint --pipeline.model.log2-hashmap-size 19 --pipeline.model.use-color-transform True"
     )
-    assert name == "joint, table 2^19"
-    assert config.method_name == "continual-ngp-joint"
-    assert config.pipeline.datamanager.joint
+    assert recipe.name == "joint, big"
+    config = config_of(QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out"), recipe, "street")
+    assert config.method_name == "continual-ngp-joint" and config.pipeline.datamanager.joint
     assert config.pipeline.model.log2_hashmap_size == 19
-    assert config.pipeline.lr_decay_per_task == 0.3
-
-
-def test_a_variant_run_keeps_its_options_and_takes_the_setting(tmp_path: Path):
-    _, variant = parse_variant("big table=continual-ngp --pipeline.model.log2-hashmap-size 19")
-    benchmark = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
-    config = benchmark.config("street", Setting.parse("3x7"), (variant, None), tmp_path / "out" / "run")
-    assert config.pipeline.model.log2_hashmap_size == 19
-    assert config.pipeline.datamanager.num_tasks == 3
-    assert config.pipeline.datamanager.iterations_per_task == 7
+    assert config.pipeline.model.use_color_transform, "a boolean takes its value, as with ns-train"
+    assert config.pipeline.datamanager.num_tasks == 3 and config.pipeline.datamanager.iterations_per_task == 7
     demo = config.pipeline.datamanager.dataparser
-    assert isinstance(demo, ContinualDemoDataParserConfig) and demo.scene == "street"
+    assert isinstance(demo, ContinualDemoDataParserConfig) and demo.scene == "street" and demo.exposure_segments == 3
+
+
+def test_every_runs_options_reach_the_method_and_the_demo_beside_the_recipes_own(tmp_path: Path):
+    bench = QualityBenchmark(
+        data=tmp_path / "demo",
+        output_dir=tmp_path / "out",
+        options=("--machine.seed 7 continual-demo --num-frames 30", "--pipeline.lr-decay-start 0.5"),
+    )
+    recipe = Recipe.of("exposed", "continual-ngp continual-demo --exposure-strength 0.3")
+    config = config_of(bench, recipe)
+    assert config.machine.seed == 7 and config.pipeline.lr_decay_start == 0.5
+    demo = config.pipeline.datamanager.dataparser
+    assert isinstance(demo, ContinualDemoDataParserConfig)
+    assert (demo.exposure_strength, demo.num_frames) == (0.3, 30)
+
+
+def test_options_are_put_before_and_after_the_demo_subcommand():
+    assert with_options(["continual-ngp", "--a", "1"], ["--b 2"]) == ["continual-ngp", "--a", "1", "--b", "2"]
+    assert with_options(["m", "continual-demo", "--x", "1"], ["--b 2 continual-demo --y 3", "--c 4"]) == [
+        "m", "--b", "2", "--c", "4", "continual-demo", "--x", "1", "--y", "3",
+    ]  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -52,7 +74,7 @@ def test_a_variant_run_keeps_its_options_and_takes_the_setting(tmp_path: Path):
 )
 def test_a_bad_variant_ends_with_one_line(text: str, message: str):
     with pytest.raises(SystemExit, match=re.escape(message)) as exit_info:
-        parse_variant(text)
+        parse_recipe(text)
     assert "\n" not in str(exit_info.value.code)
 
 
@@ -71,11 +93,48 @@ def test_a_variant_may_not_take_a_name_or_run_folder_already_taken(tmp_path: Pat
 
 def test_run_folders_are_names_without_separators():
     assert folder_name("table 2^19 / big") == "table2^19big"
+    assert folder_name("clean | codes per image") == "clean_codesperimage"
     assert [folder_name(name) for name in RECIPES][:3] == [
         "continual-ngp",
         "continual-ngp_paperrecipe",
         "continual-ngp_ER1%",
     ]
+
+
+def test_every_recipe_parses_and_the_bound_falls_as_continual_ngp_does(tmp_path: Path):
+    bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
+    configs = {
+        recipe.name: bench.config(run)
+        for recipe in bench.chosen_recipes()
+        for run in bench.runs("room", Setting.parse("2x3"), [recipe])
+    }
+    assert list(configs) == list(RECIPES)
+    joint = configs[JOINT].pipeline
+    assert (joint.lr_decay_per_task, joint.lr_decay_start) == (
+        CONTINUAL_NGP.pipeline.lr_decay_per_task,
+        CONTINUAL_NGP.pipeline.lr_decay_start,
+    )
+    assert configs[JOINT].pipeline.datamanager.joint
+
+
+def matrix_of(rows: list) -> AccuracyMatrix:
+    matrix = AccuracyMatrix(num_tasks=len(rows))
+    for step, row in enumerate(rows):
+        matrix.add_row(row, [0.9] * len(row), sum(row) / len(row), step)
+    return matrix
+
+
+def test_a_finished_run_is_read_back_and_one_of_other_arguments_is_refused(tmp_path: Path):
+    bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
+    (run,) = bench.runs("room", Setting.parse("2x3"), [Recipe.of("a", "continual-ngp")])
+    summary = RunSummary.of(matrix_of([[30.0], [29.0, 32.0]]), train_seconds=1.0)
+    run.folder.mkdir(parents=True)
+    run.summary_path.write_text(json.dumps({"arguments": list(run.arguments), "summary": dataclasses.asdict(summary)}))
+    (read,) = bench.summaries([run])  # nothing to train: a training process would fail without a demo scene
+    assert read.final_mean_psnr == pytest.approx(30.5) and read.final_row == [29.0, 32.0]
+    other = bench.runs("room", Setting.parse("2x3"), [Recipe.of("a", "continual-ngp-paper")])
+    with pytest.raises(SystemExit, match="trained as `continual-ngp`, not `continual-ngp-paper`; choose another"):
+        bench.summaries(other)
 
 
 def test_throughput_times_the_variants_beside_its_own_configurations(tmp_path: Path):
@@ -97,14 +156,7 @@ def test_throughput_refuses_a_variant_named_as_its_own_configuration(tmp_path: P
         benchmark.configs(tmp_path / "out")
 
 
-def matrix_of(rows: list) -> AccuracyMatrix:
-    matrix = AccuracyMatrix(num_tasks=len(rows))
-    for step, row in enumerate(rows):
-        matrix.add_row(row, [0.9] * len(row), sum(row) / len(row), step)
-    return matrix
-
-
-def test_a_summary_has_each_tasks_psnr_right_after_its_own_training(tmp_path: Path):
+def test_a_summary_has_each_tasks_psnr_right_after_its_own_training():
     continual = RunSummary.of(matrix_of([[30.0], [29.0, 32.0], [28.0, 31.0, 26.0]]), train_seconds=1.0)
     assert continual.after_own_task == pytest.approx((30.0 + 32.0 + 26.0) / 3)
     assert continual.largest_drop == pytest.approx(2.0) and continual.spread == pytest.approx(5.0)
@@ -112,29 +164,64 @@ def test_a_summary_has_each_tasks_psnr_right_after_its_own_training(tmp_path: Pa
     assert joint.after_own_task is None, "a joint run's tasks all train from the start: no task has its own training"
 
 
-def test_a_summary_written_before_the_diagonal_was_kept_takes_it_from_the_runs_matrix(tmp_path: Path):
-    matrix = matrix_of([[30.0], [29.0, 32.0]])
-    summary = dataclasses.asdict(RunSummary.of(matrix, train_seconds=1.0))
-    del summary["after_own_task"]
-    (tmp_path / "summary.json").write_text(json.dumps(summary))
-    assert RunSummary.read(tmp_path / "summary.json").after_own_task is None, "no matrix beside it: unknown"
-    matrix.write(tmp_path / "unnamed" / "continual-ngp" / "2026-01-01_000000")
-    assert RunSummary.read(tmp_path / "summary.json").after_own_task == pytest.approx(31.0)
-
-
 @pytest.mark.parametrize(("text", "title"), [("1x1200", "1 task x 1200 iterations"), ("5x20s", "5 tasks x 20 s")])
 def test_a_setting_titles_its_tables_in_words(text: str, title: str):
     assert str(Setting.parse(text)) == title
 
 
-def test_every_pixel_kept_replays_every_closed_tasks_pixels_and_nothing_the_oracle_renders():
-    config, variant = RECIPES["every pixel kept"]
-    assert variant is not None
-    datamanager = variant(copy.deepcopy(config)).pipeline.datamanager
+@pytest.mark.parametrize("text", ["5", "x240", "0x10", "5x", "fivex240"])
+def test_a_bad_setting_is_one_line(text: str):
+    with pytest.raises(SystemExit, match="expected TASKSxITERATIONS"):
+        Setting.parse(text)
+
+
+def test_every_pixel_kept_replays_every_closed_tasks_pixels_and_nothing_the_oracle_renders(tmp_path: Path):
+    bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
+    datamanager = config_of(bench, Recipe.of("every pixel kept", RECIPES["every pixel kept"])).pipeline.datamanager
     assert datamanager.replay_buffer_share == 1.0
     buffer = ExperienceReplayBuffer(datamanager.replay_buffer_fraction, datamanager.replay_buffer_pixels)
     flat, rgb = torch.arange(10_000), torch.rand(10_000, 3)
     buffer.add_task(0, flat, rgb, total_pixels=30_000)
     buffer.add_task(1, flat + 10_000, rgb, total_pixels=30_000)
     assert buffer.tasks_held() == {0: 10_000, 1: 10_000}, "two closed tasks, all of their pixels"
-    assert config.pipeline.datamanager.replay_buffer_fraction == 0, "the registered method keeps no pixel"
+    assert CONTINUAL_NGP.pipeline.datamanager.replay_buffer_fraction == 0, "the registered method keeps no pixel"
+
+
+@pytest.mark.slow
+def test_a_tiny_grid_trains_two_recipes_in_two_processes_and_writes_its_tables(tmp_path: Path):
+    bench = QualityBenchmark(
+        data=DEMO_CACHE,
+        output_dir=tmp_path / "out",
+        scenes=("room",),
+        settings=("2x3",),
+        recipes=("continual-ngp", JOINT),
+        rays_per_batch=64,
+        jobs=2,
+        options=("--pipeline.model.num-levels 4 --pipeline.model.log2-hashmap-size 12 continual-demo --num-frames 16 "
+                 "--width 24 --height 18",),
+    )  # fmt: skip
+    bench.main()
+    tables = (tmp_path / "out" / "results.md").read_text()
+    assert "## room, 2 tasks x 3 iterations" in tables
+    rows = [line for line in tables.splitlines() if line.startswith(("| continual-ngp |", f"| {JOINT} |"))]
+    assert len(rows) == 2 and rows[1].split(" | ")[2] == "+0.00", "the bound is its own reference"
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())["room"]["2x3"]["continual-ngp"]
+    assert saved["iterations"] == 6
+    assert len(saved["seconds_per_task"]) == 2 and all(seconds > 0 for seconds in saved["seconds_per_task"])
+    peaks = saved["peak_mib_per_task"]
+    assert len(peaks) == 2 and 0 < peaks[0] <= peaks[1], "each run's own process: its peak, task by task"
+
+
+def test_a_sweep_over_task_counts_is_plotted_one_line_per_recipe_and_budget(tmp_path: Path):
+    def run(psnr: float) -> RunSummary:
+        return dataclasses.replace(RunSummary.of(matrix_of([[psnr]]), train_seconds=1.0), final_mean_psnr=psnr)
+
+    results = {
+        scene: {key: {"a": run(30.0 - tasks), JOINT: run(31.0)} for key, tasks in (("2x3", 2), ("4x3", 4), ("8x3", 8))}
+        for scene in ("room", "street")
+    }
+    plot_against_tasks(results, tmp_path / "plot.png")
+    image = Image.open(tmp_path / "plot.png")
+    assert image.size[0] > image.size[1] > 100, "two panels side by side"
+    assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 20, "lines drawn, not blank"
+    assert total(Setting.parse("4x3")) == "12 iterations" and total(Setting.parse("4x2.5s")) == "10 s"

@@ -2,28 +2,32 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
 from helpers import DEMO_CACHE, demo_parser, rotation
 from PIL import Image
 
+from continual_nerf.bench.grid import Setting
 from continual_nerf.bench.real_capture import (
     FEATURES,
-    PIPELINE_OPTIONS,
     TRUE_EXPOSURE,
     RealCaptureBenchmark,
     fitted_onto,
+    hold_true_exposure,
+    recipe,
     reports_pose_errors,
     rms_errors,
-    train_at_true_exposure,
 )
-from continual_nerf.core.continual_pipeline import POSE_GROUP
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP
 from continual_nerf.dataparsers import demo_capture
 from continual_nerf.method_configs import CONTINUAL_NGP
+from continual_nerf.recipes import set_up_like_ns_train
+
+
+def config_of(bench: RealCaptureBenchmark, capture: str, feature: str, scene: str = "room"):
+    (run,) = bench.runs(scene, Setting.parse(bench.setting), [recipe(capture, feature)])
+    return bench.config(run)
 
 
 def trajectory(count: int = 30) -> np.ndarray:
@@ -65,62 +69,53 @@ def test_errors_within_the_trajectory_remain():
 )
 def test_pose_errors_are_reported_for_noisy_poses_and_for_every_refining_run(tmp_path, capture, feature, reported):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
-    demo = bench.demo("room", capture)
-    assert reports_pose_errors(demo, bench.config(demo, feature, tmp_path / "run")) == reported
+    assert reports_pose_errors(config_of(bench, capture, feature)) == reported
 
 
-def test_every_run_trains_with_the_chosen_seed(tmp_path):
-    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", seed=7)
-    demo = bench.demo("room", "clean")
-    assert bench.config(demo, "off", tmp_path / "run").machine.seed == 7
-
-
-def test_the_chosen_colour_transform_rate_trains_learned_transforms_only(tmp_path):
-    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", color_transform_lr=1e-3)
-    demo = bench.demo("room", "exposure +-30 %")
-    rate = {
-        feature: bench.config(demo, feature, tmp_path / "run").optimizers[COLOR_TRANSFORM_GROUP] for feature in FEATURES
-    }
-    assert rate["colour transform per image"]["optimizer"].lr == 1e-3
-    assert rate[TRUE_EXPOSURE]["optimizer"].lr == 0.0, "the bound's transforms stay at the recorded gains"
-
-
-def test_the_chosen_pose_rate_trains_the_pose_corrections(tmp_path):
-    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr=1e-4)
-    config = bench.config(bench.demo("room", "poses off 1 deg, 1 %"), "pose refinement", tmp_path / "run")
-    assert config.optimizers[POSE_GROUP]["optimizer"].lr == 1e-4
+def test_every_runs_options_reach_every_run(tmp_path):
+    bench = RealCaptureBenchmark(
+        data=tmp_path / "data",
+        output_dir=tmp_path / "bench",
+        options=("--machine.seed 7 --optimizers.camera-opt.optimizer.lr 1e-4",),
+    )
+    config = config_of(bench, "poses off 1 deg, 1 %", "pose refinement")
+    assert config.machine.seed == 7
+    assert config.optimizers["camera_opt"]["optimizer"].lr == 1e-4
     assert config.optimizers["fields"]["optimizer"].lr == CONTINUAL_NGP.optimizers["fields"]["optimizer"].lr
 
 
-def test_the_chosen_pose_rate_decay_sets_the_pipeline_option(tmp_path):
-    bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench", pose_lr_decay_per_task=1.0)
-    config = bench.config(bench.demo("room", "poses off 1 deg, 1 %"), "pose refinement from mid-task", tmp_path / "run")
-    assert config.pipeline.pose_lr_decay_per_task == 1.0
-    assert (
-        config.pipeline.pose_refinement_start
-        == PIPELINE_OPTIONS["pose refinement from mid-task"]["pose_refinement_start"]
-    )
-    assert CONTINUAL_NGP.pipeline.pose_lr_decay_per_task != 1.0, "the option changed something"
-
-
 @pytest.mark.parametrize("feature", list(FEATURES))
-def test_every_feature_sets_model_and_pipeline_options_the_run_validates(tmp_path, feature):
+def test_every_feature_parses_into_a_config_the_run_validates(tmp_path, feature):
     bench = RealCaptureBenchmark(data=tmp_path / "data", output_dir=tmp_path / "bench")
-    config = bench.config(bench.demo("room", "clean"), feature, tmp_path / "run")
+    config = config_of(bench, "exposure +-30 %", feature)
     config.pipeline.validate()
     model = config.pipeline.model
-    assert all(getattr(model, option) == value for option, value in FEATURES[feature].items())
-    pipeline = PIPELINE_OPTIONS.get(feature, {})
-    assert all(getattr(config.pipeline, option) == value for option, value in pipeline.items())
-    assert config.pipeline.pose_refinement_start == pipeline.get("pose_refinement_start", 0.0), "others: the default"
+    assert model.refines_poses == ("pose refinement" in feature)
+    assert config.pipeline.pose_refinement_start == (0.5 if feature.endswith("from mid-task") else 0.0)
+    assert model.use_color_transform == ("colour transform" in feature)
+    assert model.use_appearance_embedding == ("codes" in feature)
+    transform_rate = config.optimizers[COLOR_TRANSFORM_GROUP]["optimizer"].lr
+    assert (transform_rate == 0.0) == (feature == TRUE_EXPOSURE), "the bound's transforms stay at the recorded gains"
+    demo = config.pipeline.datamanager.dataparser
+    assert demo.exposure_strength == 0.3 and demo.exposure_segments == 5, "a jump at each of the 5 tasks' boundaries"
 
 
 def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_with(tmp_path, single_thread):
     bench = RealCaptureBenchmark(
-        data=DEMO_CACHE, output_dir=tmp_path, setting="2x3", small_model=True, rays_per_batch=64
-    )
-    exposed = dataclasses.replace(demo_parser(num_frames=16), exposure_strength=0.3, exposure_segments=2)
-    trainer = train_at_true_exposure(bench.config(exposed, TRUE_EXPOSURE, tmp_path / "run"), exposed)
+        data=DEMO_CACHE,
+        output_dir=tmp_path,
+        setting="2x3",
+        rays_per_batch=64,
+        options=("--pipeline.model.num-levels 4 --pipeline.model.log2-hashmap-size 12 continual-demo --num-frames 16 "
+                 "--width 24 --height 18",),
+    )  # fmt: skip
+    config = config_of(bench, "exposure +-30 %", TRUE_EXPOSURE)
+    exposed = config.pipeline.datamanager.dataparser
+    assert exposed.exposure_segments == 2
+    config.save_config()
+    trainer = set_up_like_ns_train(config)
+    hold_true_exposure(trainer)
+    trainer.train()
     transforms = trainer.pipeline.model.color_transforms.transforms.detach()
     assert torch.equal(transforms[:, :, 3], torch.zeros(len(transforms), 3)), "gains, no offsets"
     gains = transforms[:, :, :3].diagonal(dim1=1, dim2=2)
@@ -136,17 +131,14 @@ def test_the_bound_holds_every_transform_at_the_gains_its_frame_was_recorded_wit
         np.testing.assert_allclose(ratios, gains[row].numpy(), rtol=0.02)
 
 
-def test_only_the_chosen_captures_and_features_train_beside_the_reference(tmp_path, monkeypatch):
+def test_only_the_chosen_captures_and_features_train_beside_the_reference(tmp_path):
     bench = RealCaptureBenchmark(
         data=tmp_path / "data",
         output_dir=tmp_path / "bench",
         captures=("poses off 1 deg, 1 %",),
         features=("pose refinement",),
     )
-    trained = []
-    monkeypatch.setattr(bench, "run", lambda scene, capture, feature: trained.append((capture, feature)))
-    bench.run_scene("room")
-    assert trained == [("poses off 1 deg, 1 %", "pose refinement"), ("clean", "off")]
+    assert bench.pairs("room") == [("clean", "off"), ("poses off 1 deg, 1 %", "pose refinement")]
 
 
 def test_an_unknown_capture_is_refused_in_one_line(tmp_path):

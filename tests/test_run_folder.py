@@ -32,8 +32,8 @@ from nerfstudio.scripts.train import train_loop
 from continual_nerf import run_lock
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
-from continual_nerf.core.interrupts import INTERRUPTS, resume_command
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.interrupts import INTERRUPTS, resume_command
 from continual_nerf.recipes import set_up_like_ns_train
 from continual_nerf.run_lock import LOCK_NAME, claim_run_folder, release_run_folder
 

@@ -17,9 +17,9 @@ from helpers import RUN_TIMEOUT, demo_parser, replayed, stream_config
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.dataparsers.capture_folder import TRAINING_FILE, CaptureWatcher, announce_training, trained_task
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError, ContinualNerfError, DatasetError
-from continual_nerf.streaming.capture_folder import TRAINING_FILE, CaptureWatcher, announce_training, trained_task
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 

@@ -21,12 +21,13 @@ from continual_nerf.bench.browser import CHROMIUM, DevTools, free_port, viewer_a
 from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core import continual_trainer
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.plots import task_colour
-from continual_nerf.viewer.continual_panel import PANEL_LABEL, PROGRESS_LABEL
-from continual_nerf.viewer.pictures import ACCURACY_ALT
-from continual_nerf.viewer.run_viewer import ContinualRunViewer
-from continual_nerf.viewer.viewer_config import ContinualViewerConfig
+from continual_nerf.viewer.continual_panel import FINISHED, PANEL_LABEL, PAUSED, PROGRESS_LABEL
+from continual_nerf.viewer.live_trainer import LiveViewerTrainer
+from continual_nerf.viewer.pictures import ACCURACY_ALT, DISPLAY_WIDTH
+from continual_nerf.viewer.run_viewer import CHECKPOINT_LABEL, RENDERING, ContinualRunViewer
+from continual_nerf.viewer.viewer_config import DEFAULT_MAX_RES, DEFAULT_TRAIN_UTIL, ContinualViewerConfig
 
 pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
 
@@ -107,17 +108,30 @@ def pixels_of_colour(png: bytes, task: int, tolerance: int = 40) -> int:
     return int((np.abs(image - np.array(task_colour(task))).max(axis=-1) <= tolerance).sum())
 
 
+def line(chromium: DevTools, label: str) -> str:
+    """The panel's line that starts with `label`, without it."""
+    lines = [text for text in chromium.page_text().splitlines() if text.startswith(label)]
+    return lines[0][len(label) :].strip() if lines else ""
+
+
 def progress(chromium: DevTools) -> str:
     """The panel's progress line."""
-    lines = [line for line in chromium.page_text().splitlines() if line.startswith(PROGRESS_LABEL)]
-    return lines[0][len(PROGRESS_LABEL) :].strip() if lines else ""
+    return line(chromium, PROGRESS_LABEL)
 
 
 def test_live_viewer_from_set_up_to_the_end_of_training(chromium, tmp_path, monkeypatch):
     config = live_config(tmp_path)
-    url = f"http://127.0.0.1:{config.viewer.websocket_port}"
+    port = config.viewer.websocket_port
+    url = f"http://127.0.0.1:{port}"
+    viewer_started, panel_may_come = threading.Event(), threading.Event()
     page_saw_set_up = threading.Event()
-    real_warm_up = continual_trainer.warm_up
+    real_warm_up, real_extend_viewer = continual_trainer.warm_up, LiveViewerTrainer.extend_viewer
+
+    def extend_viewer_once_checked(trainer, viewer):
+        # set-up holds between nerfstudio's viewer and the panel while the test asks for the page
+        viewer_started.set()
+        assert panel_may_come.wait(timeout=120), "the test never let the panel come"
+        real_extend_viewer(trainer, viewer)
 
     def warm_up_until_seen(model, num_rays, progress, **options):
         # set-up holds here, in the compile stage, until the page has shown it: no race with a fast set-up
@@ -126,10 +140,18 @@ def test_live_viewer_from_set_up_to_the_end_of_training(chromium, tmp_path, monk
         real_warm_up(model, num_rays, progress=progress, **options)
 
     monkeypatch.setattr(continual_trainer, "warm_up", warm_up_until_seen)
+    monkeypatch.setattr(LiveViewerTrainer, "extend_viewer", extend_viewer_once_checked)
     trainer = config.setup(local_rank=0, world_size=1)
     set_up = InThread(trainer.setup)
-    wait_for("the viewer to answer", lambda: viewer_answers(config.viewer.websocket_port))
+    wait_for("nerfstudio's viewer to start", viewer_started.is_set)
+    assert not viewer_answers(port), "the page answered before the continual panel was in it"
+    panel_may_come.set()
+    wait_for("the viewer to answer", lambda: viewer_answers(port))
     chromium.navigate(url)
+    wait_for("the panel", lambda: PANEL_LABEL in chromium.page_text())
+    # the continual defaults came before the panel: the page never shows nerfstudio's
+    assert chromium.input_value("Max res") == str(DEFAULT_MAX_RES)
+    assert chromium.input_value("Train Util") == str(DEFAULT_TRAIN_UTIL)
     wait_for("the panel in the set-up stage", lambda: progress(chromium).startswith("setting up: compiling"))
     assert PANEL_LABEL in chromium.page_text()
     assert chromium.input_value("Task") == f"1 of {NUM_TASKS}"
@@ -146,7 +168,7 @@ def test_live_viewer_from_set_up_to_the_end_of_training(chromium, tmp_path, monk
         trainer.shutdown()
 
 
-def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path) -> None:
+def drive_live_run(chromium: DevTools, trainer: LiveViewerTrainer, tmp_path: Path) -> None:
     dataset = trainer.pipeline.datamanager.train_dataset
     frames_of = [set(dataset.frames_of_task(task).tolist()) for task in range(NUM_TASKS)]
     wait_for("training to start", lambda: progress(chromium).startswith("iteration"))
@@ -172,6 +194,7 @@ def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path
         assert (message.image_binary is not None) == (task == 1), "the open task is drawn with its images"
     wait_for("task 1's accuracy picture", lambda: ACCURACY_ALT in chromium.images())
     first_picture = chromium.images()[ACCURACY_ALT]
+    assert chromium.image_width(ACCURACY_ALT) == DISPLAY_WIDTH, "shown at the width its fonts are sized for"
     mean = trainer.pipeline.accuracy.mean_psnr[0]
     assert chromium.input_value("Mean test PSNR") == f"{mean:.2f} dB after task 1"
     # the default view (framing the trajectory, frustums sized by it, not hidden by the render) shows both colours
@@ -181,6 +204,11 @@ def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path
     )
     chromium.screenshot(tmp_path / "viewer_task2.png")
 
+    chromium.click_button("Pause Training")
+    wait_for("the progress line to say paused", lambda: progress(chromium).startswith(PAUSED))
+    chromium.click_button("Resume Training")
+    wait_for("the progress line to count iterations again", lambda: progress(chromium).startswith("iteration"))
+
     chromium.click_input("Pause after this task")
     wait_for("the tick to reach the server", lambda: trainer.panel.pause_after_task.value)
     chromium.click_button("Next task now")
@@ -189,6 +217,7 @@ def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path
     assert len(frustums(trainer.viewer_state)) == sum(len(frames) for frames in frames_of)
     wait_for("the accuracy picture of task 2", lambda: chromium.images().get(ACCURACY_ALT) != first_picture)
     wait_for("nerfstudio's Resume Training button", lambda: "Resume Training" in chromium.page_text())
+    assert progress(chromium).startswith(PAUSED), "the progress line says training is paused"
     step = trainer.step
     time.sleep(1.0)
     assert trainer.step == step and trainer.pipeline.budget.iterations_done == 0, "paused at the task boundary"
@@ -198,9 +227,10 @@ def drive_live_run(chromium: DevTools, trainer: ContinualTrainer, tmp_path: Path
 
     chromium.click_button("Resume Training")
     chromium.click_button("Next task now")  # the last task: training ends
-    wait_for("the end of training", lambda: progress(chromium) == "training finished")
+    wait_for("the end of training", lambda: progress(chromium) == FINISHED)
     wait_for("the controls to be disabled", lambda: chromium.button_disabled("Next task now"))
     assert chromium.button_disabled("Pause Training")
+    assert chromium.input_disabled("Pause after this task") and chromium.input_disabled("Follow the newest task")
     assert f"Step: {trainer.step}" in chromium.page_text(), "nerfstudio's step counter follows training"
 
 
@@ -213,9 +243,20 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
     accuracy = AccuracyMatrix.read(run_dir / ACCURACY_MATRIX_FILENAME)
     options = ContinualViewerConfig(websocket_port=free_port())
     travel = ContinualRunViewer(run_dir / "config.yml", viewer=options).start()
+    renders_released = threading.Event()
+    render = travel.pipeline.model.get_outputs_for_camera
+
+    def held_while_the_line_says_rendering(camera, **options):
+        while travel.rendering is not None and not renders_released.is_set():  # the viewer can interrupt it here
+            time.sleep(0.05)
+        return render(camera, **options)
+
+    travel.pipeline.model.get_outputs_for_camera = held_while_the_line_says_rendering
     try:
         chromium.navigate(f"http://127.0.0.1:{options.websocket_port}")
         wait_for("the task slider", lambda: chromium.input_value("Task") == "2")
+        assert line(chromium, CHECKPOINT_LABEL) == f"end of task 2, step-{accuracy.steps[1]:09d}.ckpt"
+        assert not chromium.text_cut_off(CHECKPOINT_LABEL)
         assert ACCURACY_ALT in chromium.images()
         assert chromium.input_value("Mean test PSNR") == f"{accuracy.mean_psnr[1]:.2f} dB after task 2"
         assert {message.color for message in frustums(travel.viewer).values()} == {colour_number(0), colour_number(1)}
@@ -224,8 +265,14 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         after_task_2 = chromium.screenshot_png()
 
         chromium.set_slider("Task", 1)
+        task_1 = f"end of task 1, step-{accuracy.steps[0]:09d}.ckpt"
+        wait_for(
+            "the page to say task 1's view renders",
+            lambda: line(chromium, CHECKPOINT_LABEL).startswith(f"{task_1}, {RENDERING}"),
+        )
+        renders_released.set()
+        wait_for("the page to say task 1's view has rendered", lambda: line(chromium, CHECKPOINT_LABEL) == task_1)
         end_of_task_1 = read_checkpoint(run_dir / "nerfstudio_models" / f"step-{accuracy.steps[0]:09d}.ckpt")
-        wait_for("task 1's checkpoint", lambda: travel.checkpoint.value.endswith("(end of task 1)"))
         for name, value in travel.pipeline.model.state_dict().items():
             if isinstance(value, torch.Tensor):
                 assert torch.equal(value, end_of_task_1["pipeline"][f"_model.{name}"]), name

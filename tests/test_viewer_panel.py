@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from helpers import demo_parser, tiny_config
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.utils.writer import EventName
 from PIL import Image
@@ -19,7 +20,14 @@ from continual_nerf.core.continual_pipeline import ContinualStatus
 from continual_nerf.method_configs import continual_ngp, continual_ngp_stream
 from continual_nerf.nerfstudio_compat import VISER_NERFSTUDIO_SCALE_RATIO
 from continual_nerf.viewer.continual_panel import mean_psnr_text, task_text
-from continual_nerf.viewer.pictures import accuracy_markdown, legend_markdown
+from continual_nerf.viewer.pictures import (
+    CSS_DPI,
+    DISPLAY_WIDTH,
+    PANEL_DPI,
+    accuracy_figure,
+    accuracy_markdown,
+    legend_markdown,
+)
 from continual_nerf.viewer.task_cameras import camera_positions, framing_view, frustum_scale
 
 
@@ -69,10 +77,27 @@ def png_of(markdown: str) -> Image.Image:
     return Image.open(io.BytesIO(base64.b64decode(data.group(1))))
 
 
-def test_the_pictures_are_small_pngs_in_markdown():
-    assert png_of(legend_markdown(12)).size[0] == 300
+def test_the_pictures_are_pngs_in_markdown_as_wide_as_the_panel_shows_them():
+    png_width = DISPLAY_WIDTH * PANEL_DPI // CSS_DPI
+    assert png_of(legend_markdown(12)).size[0] == png_width
     picture = png_of(accuracy_markdown([[20.0], [19.0, 22.5], [18.0, 21.0, 25.0]], 5))
-    assert picture.size[0] == 300 and picture.size[1] < 300
+    assert picture.size[0] == png_width and picture.size[1] < 1.5 * png_width
+
+
+@pytest.mark.parametrize("num_tasks", [2, 5, 9, 12])
+def test_the_accuracy_picture_writes_readable_values_that_fit_their_cells_and_names_the_unit(num_tasks):
+    figure = accuracy_figure([[20.0 + i + j for j in range(i + 1)] for i in range(num_tasks)], num_tasks)
+    renderer = FigureCanvasAgg(figure).get_renderer()
+    figure.draw(renderer)
+    css_pixels = DISPLAY_WIDTH / (figure.get_figwidth() * figure.dpi)  # per figure pixel, as the panel shows it
+    matrix, colour_bar = figure.axes
+    column = matrix.get_window_extent(renderer).width / num_tasks * css_pixels
+    values = matrix.texts
+    assert len(values) == (num_tasks * (num_tasks + 1) // 2 if num_tasks <= 9 else 0), "written while they fit"
+    for value in values:
+        assert value.get_fontsize() / 72 * figure.dpi * css_pixels >= 13, "a font whose digits are 9 px high or more"
+        assert value.get_window_extent(renderer).width * css_pixels < column, value.get_text()
+    assert "(dB)" in colour_bar.get_xlabel()
 
 
 def test_panel_texts():

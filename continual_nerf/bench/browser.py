@@ -91,6 +91,9 @@ class DevTools:
     def input_checked(self, label: str) -> bool:
         return self.evaluate(f"({INPUT_BY_LABEL})({json.dumps(label)}).checked")
 
+    def input_disabled(self, label: str) -> bool:
+        return self.evaluate(f"({INPUT_BY_LABEL})({json.dumps(label)}).disabled")
+
     def click_input(self, label: str) -> None:
         assert self.evaluate(f"(() => {{ ({INPUT_BY_LABEL})({json.dumps(label)}).click(); return true; }})()")
 
@@ -124,6 +127,19 @@ class DevTools:
     def images(self) -> Dict[str, str]:
         """The page's images by their alt text: their sources (the panel's pictures are data URLs)."""
         return self.evaluate("Object.fromEntries([...document.querySelectorAll('img')].map(i => [i.alt, i.src]))")
+
+    def image_width(self, alt: str) -> Optional[int]:
+        """CSS pixels the page shows the image with alt text `alt` across, or None without such an image."""
+        find = f"[...document.querySelectorAll('img')].find(i => i.alt === {json.dumps(alt)})"
+        return self.evaluate(f"(() => {{ const i = {find}; return i ? i.clientWidth : null; }})()")
+
+    def text_cut_off(self, start: str) -> bool:
+        """Whether the innermost element whose text starts with `start` is wider than the room it is shown in."""
+        find = f"[...document.querySelectorAll('body *')].reverse().find(e => e.textContent.trim().startsWith({json.dumps(start)}))"
+        cut = f"(() => {{ const e = {find}; if (!e) return null; return e.scrollWidth > e.clientWidth; }})()"
+        result = self.evaluate(cut)
+        assert result is not None, f"no text starting with {start!r} on the page"
+        return result
 
     def button_disabled(self, text: str) -> bool:
         find = f"[...document.querySelectorAll('button')].find(b => b.textContent.trim() === {json.dumps(text)})"

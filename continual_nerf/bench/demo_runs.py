@@ -6,7 +6,7 @@ import copy
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Literal, Tuple
+from typing import Any, Iterable, Literal, Sequence
 
 import tyro
 from nerfstudio.configs.method_configs import all_methods, method_configs as nerfstudio_methods
@@ -40,24 +40,26 @@ def check_names(option: str, chosen: Iterable[str], known: Iterable[str]) -> Non
         raise SystemExit(f"--{option}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
 
 
-def parse_variant(text: str) -> Tuple[str, ContinualTrainerConfig]:
-    """`NAME=METHOD OPTIONS` (a benchmark's --variants): the name and the config of a registered continual method with
-    ns-train options."""
-    name, equals, command = text.partition("=")
-    words = shlex.split(command)
-    if not equals or not name.strip() or not words:
-        raise SystemExit(
-            f"--variants {text!r}: expected NAME=METHOD [OPTIONS], e.g. 'lr=continual-ngp --pipeline.lr-decay-per-task 0.3'"
-        )
-    method, options = words[0], words[1:]
+def recipe_config(arguments: Sequence[str], option: str) -> ContinualTrainerConfig:
+    """The config `ns-train METHOD OPTIONS` would train, for `arguments` = METHOD OPTIONS (a registered continual
+    method, its options and optionally a dataparser subcommand with its own); bad ones end with one line naming
+    `option`."""
+    if not arguments:
+        raise SystemExit(f"{option}: no method given")
+    method, options = arguments[0], list(arguments[1:])
     base = all_methods.get(method)
     if not isinstance(base, ContinualTrainerConfig):
-        raise SystemExit(f"--variants {name}: {method} is not a registered continual method")
+        raise SystemExit(f"{option}: {method} is not a registered continual method")
     try:
-        config = tyro.cli(ContinualTrainerConfig, default=copy.deepcopy(base), args=options, console_outputs=False)
+        # as ns-train parses: booleans take a value (--pipeline.model.use-color-transform True)
+        return tyro.cli(
+            tyro.conf.FlagConversionOff[ContinualTrainerConfig],  # type: ignore[valid-type]
+            default=copy.deepcopy(base),
+            args=options,
+            console_outputs=False,
+        )
     except SystemExit:
-        raise SystemExit(f"--variants {name}: {shlex.join(options)} are not options of ns-train {method}") from None
-    return name.strip(), config
+        raise SystemExit(f"{option}: {shlex.join(options)} are not options of ns-train {method}") from None
 
 
 def on_demo(

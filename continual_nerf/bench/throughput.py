@@ -21,7 +21,8 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, parse_variant
+from continual_nerf.bench.demo_runs import nerfacto_on_demo, on_demo, recipe_config
+from continual_nerf.bench.grid import parse_recipe
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_INCRE, CONTINUAL_NGP_PAPER
@@ -102,10 +103,11 @@ class ThroughputBenchmark:
             REPLAY_OFF: on_demo(CONTINUAL_NGP_INCRE, demo, self.device, output_dir, **options),
             NERFACTO: nerfacto_on_demo(demo, self.device, output_dir, **options),
         }
-        for name, config in map(parse_variant, self.variants):
-            if name in configs:
-                raise SystemExit(f"--variants {name}: a configuration has that name already")
-            configs[name] = on_demo(config, demo, self.device, output_dir, **options)
+        for recipe in map(parse_recipe, self.variants):
+            if recipe.name in configs:
+                raise SystemExit(f"--variants {recipe.name}: a configuration has that name already")
+            config = recipe_config(recipe.arguments, option=f"--variants {recipe.name}")
+            configs[recipe.name] = on_demo(config, demo, self.device, output_dir, **options)
         return configs
 
     def last_task_trainer(self, config: ContinualTrainerConfig) -> ContinualTrainer:

@@ -21,6 +21,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.model_components.ray_generators import RayGenerator
@@ -34,7 +35,6 @@ from continual_nerf.core.continual_dataset import (
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
-from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.errors import ContinualConfigError, plural
 from continual_nerf.validated_config import ValidatedConfig
 
@@ -44,7 +44,8 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     """Splits the dataparser's trajectory into tasks and serves them to the model one at a time."""
 
     _target: Type = field(default_factory=lambda: ContinualDataManager)
-    dataparser: AnnotatedDataParserUnion = field(default_factory=ContinualDemoDataParserConfig)
+    # nerfstudio's default; the registered methods (method_configs.py) read continual-demo unless told otherwise
+    dataparser: AnnotatedDataParserUnion = field(default_factory=BlenderDataParserConfig)
     """Dataparser that reads the trajectory; its train split, in capture order, is the whole trajectory."""
     num_tasks: int = 10
     """Number of temporally contiguous tasks the trajectory is split into (paper: 10)."""

@@ -18,8 +18,9 @@ from torch import Tensor
 
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.core.valid_pixels import ValidPixels, inside_circle
-from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS
 from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS
+from continual_nerf.nerfstudio_compat import cameras_as_parsed
 from continual_nerf.untrusted_files import check_regular
 
 IMAGE_MODES = ("L", "RGB", "RGBA")
@@ -132,7 +133,7 @@ class ContinualDataset(InputDataset):
         task = int(self.task_of_frame[image_idx])
         if self.for_training and task != self.open_task:
             raise ClosedTaskError(
-                f"frame {image_idx} ({self._dataparser_outputs.image_filenames[image_idx]}) belongs to task {task + 1}; "
+                f"frame {image_idx} ({self.image_filenames[image_idx]}) belongs to task {task + 1}; "
                 f"only the open task's pixels are readable (open: {None if self.open_task is None else self.open_task + 1})"
             )
         return read_image(self, image_idx)
@@ -157,7 +158,7 @@ class TestFrameDataset(InputDataset):
 
 def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
     """nerfstudio's image read, with a missing, unreadable, truncated or mis-sized file reported by name in one line."""
-    filename = dataset._dataparser_outputs.image_filenames[image_idx]
+    filename = dataset.image_filenames[image_idx]
     try:
         check_regular(filename)  # nerfstudio opens the file by name: a FIFO put there would block it
         image = InputDataset.get_numpy_image(dataset, image_idx)
@@ -184,12 +185,12 @@ def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
     """Check from the file headers alone, without decoding pixels, that each of `frames` is an 8-bit image of its
     camera's size."""
     for frame in frames:
-        filename = dataset._dataparser_outputs.image_filenames[frame]
+        filename = dataset.image_filenames[frame]
         size, mode = header(filename, "image")
         # nerfstudio reads other modes wrongly (palette indices as grey) or not at all (16-bit, two channels)
         if mode not in IMAGE_MODES:
             raise DatasetError(f"{filename}: image mode {mode} is not supported (8-bit {', '.join(IMAGE_MODES)} only)")
-        check_size(filename, size, dataset._dataparser_outputs.cameras, frame)
+        check_size(filename, size, cameras_as_parsed(dataset), frame)
 
 
 def check_mask_headers(dataset: ContinualDataset, frames: Iterable[int]) -> None:
@@ -206,7 +207,7 @@ def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
     size, mode = header(filename, "mask")
     if mode not in MASK_MODES:
         raise DatasetError(f"{filename}: mask mode {mode} is not supported (one channel: 8-bit L or 1-bit)")
-    cameras = dataset._dataparser_outputs.cameras
+    cameras = cameras_as_parsed(dataset)
     full = int(cameras.width[frame]), int(cameras.height[frame])
     loaded = int(dataset.cameras.width[frame]), int(dataset.cameras.height[frame])
     if tuple(size) not in (full, loaded):

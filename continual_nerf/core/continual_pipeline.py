@@ -29,7 +29,12 @@ from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelCo
 from continual_nerf.core.replay_oracle import ReplayOracle
 from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.nerfstudio_compat import world_size_for_vanilla_pipeline
+from continual_nerf.nerfstudio_compat import (
+    model_keys_of_one_process,
+    trained_model,
+    world_size_for_vanilla_pipeline,
+    wrap_model,
+)
 from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
@@ -128,7 +133,7 @@ class ContinualPipeline(VanillaPipeline):
             config, device, test_mode, world_size_for_vanilla_pipeline(device, world_size), local_rank, grad_scaler
         )
         if world_size > 1 and self.world_size == 1:  # CPU processes: DDP without nerfstudio's CUDA device_ids
-            self._model = distributed.data_parallel(self._model)  # type: ignore[assignment]
+            wrap_model(self, distributed.data_parallel)
             self.world_size = world_size
         options = config.datamanager
         self.task = TaskState()
@@ -177,7 +182,7 @@ class ContinualPipeline(VanillaPipeline):
         )
 
     def get_train_loss_dict(self, step: int):
-        return self._train_loss_dict(step, self._model)
+        return self._train_loss_dict(step, trained_model(self))
 
     def local_train_loss_dict(self, step: int):
         """A training batch's losses through the unwrapped model: no gradient all-reduce follows its backward."""
@@ -365,11 +370,7 @@ class ContinualPipeline(VanillaPipeline):
     def checkpoint_state_dict(self) -> Dict[str, Any]:
         """The state dict with the model's keys as one process has them (no DDP `module.`): any number of processes
         resumes from it, and ns-eval / ns-render read it."""
-        state = self.state_dict()
-        if self.model is self._model:
-            return state
-        wrapped = "_model.module."
-        return {("_model." + key[len(wrapped) :] if key.startswith(wrapped) else key): v for key, v in state.items()}
+        return model_keys_of_one_process(self, self.state_dict())
 
     def get_extra_state(self) -> Dict[str, Any]:
         # the task, its progress and the accuracy matrix so far: a resumed run continues where this one stopped and

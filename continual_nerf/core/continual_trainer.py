@@ -1,6 +1,6 @@
 """nerfstudio's Trainer, with the iteration count derived from the task budget, one-line errors for bad input,
-atomic checkpoints, a resume (`--load-dir`) that continues a killed run where it stopped, and the continual
-panel in the viewer."""
+atomic checkpoints and a resume (`--load-dir`) that continues a killed run where it stopped. The continual panel in
+the viewer is added by the viewer's trainer (continual_nerf/viewer/live_trainer.py), through `extend_viewer`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any, Dict, Iterator, Literal, Optional, Type
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.external import TCNN_EXISTS
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -34,9 +34,10 @@ from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
-from continual_nerf.core.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
+from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.nerfstudio_compat import (
+    DeferredPauseTrainer,
     count_progress_to,
     first_step,
     forget_empty_profile,
@@ -45,13 +46,10 @@ from continual_nerf.nerfstudio_compat import (
     quiet_nerfstudio_warnings,
     set_resume_step,
     stop_rendering_at_exit,
+    viewer_answering_when_ready,
 )
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
 from continual_nerf.validated_config import ValidatedConfig
-from continual_nerf.viewer.continual_panel import ContinualPanel
-from continual_nerf.viewer.viewer_config import ContinualViewerConfig
-
-TrainingState = Literal["training", "paused", "completed"]
 
 UNBOUNDED_ITERATIONS = 10**9
 """Iterations nerfstudio's loop is given when the tasks, not a count, end the run (timed or streamed tasks)."""
@@ -68,8 +66,6 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     """Cap on the run's training iterations; None: the task budget decides (num_tasks x iterations_per_task)."""
     deterministic: bool = False
     """Use torch's deterministic algorithms: a seed gives bit-identical losses on CPU, at up to twice the step time."""
-    viewer: ContinualViewerConfig = field(default_factory=ContinualViewerConfig)
-    """nerfstudio's viewer with the continual panel: the released tasks' cameras, the accuracy matrix, controls."""
 
     def validate(self) -> None:
         super().validate()
@@ -202,22 +198,17 @@ def one_line_exit(method_name: Optional[str]) -> Iterator[None]:
         raise SystemExit(f"{method_name}: error: {line}") from None
 
 
-class ContinualTrainer(Trainer):
+class ContinualTrainer(DeferredPauseTrainer):
     """Runs nerfstudio's training loop unchanged; the pipeline's callbacks switch tasks and stop it."""
 
     config: ContinualTrainerConfig
     pipeline: ContinualPipeline
-    _training_state: TrainingState
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         quiet_nerfstudio_warnings(on_cpu=config.machine.device_type == "cpu")
         if not distributed.is_main():
             CONSOLE.quiet = True  # every process would print the same lines: rank 0 speaks for the run
-        self.pause_requested = False
-        """With several processes: the viewer asked for a pause, which starts at the end of the iteration."""
         super().__init__(config, local_rank, world_size)
-        self.panel: Optional[ContinualPanel] = None
-        """The viewer's continual-learning panel, when the viewer runs."""
         self._resumed_from: Optional[Path] = None
         """The checkpoint folder this run resumed from, if any."""
         self._last_trained_step: Optional[int] = None
@@ -256,23 +247,23 @@ class ContinualTrainer(Trainer):
         if self.config.deterministic:
             # the hash grid's gradients are scatter-adds run in parallel: their summation order varies the last bits
             torch.use_deterministic_algorithms(True, warn_only=True)
-        with one_line_exit(self.config.method_name):
-            super().setup(test_mode)
-        # a resumed run's loop counts its iterations from the resumed step: % done and ETA count to the run's end
-        count_progress_to(first_step(self) + self.config.max_num_iterations)
-        if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
-            # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
-            self.viewer_state.viser_server.stop()
-            self.viewer_state = None
-        if isinstance(self.viewer_state, Viewer):
-            self.panel = self._install_panel(self.viewer_state)
-        show_stage = self.panel.show_stage if self.panel is not None else lambda stage: None
+        with viewer_answering_when_ready():  # the page answers once it shows what extend_viewer adds
+            with one_line_exit(self.config.method_name):
+                super().setup(test_mode)
+            # a resumed run's loop counts its iterations from the resumed step: % done and ETA count to the run's end
+            count_progress_to(first_step(self) + self.config.max_num_iterations)
+            if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
+                # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
+                self.viewer_state.viser_server.stop()
+                self.viewer_state = None
+            if isinstance(self.viewer_state, Viewer):
+                self.extend_viewer(self.viewer_state)
         warm_up(
             self.pipeline.model,
             self.config.pipeline.datamanager.train_num_rays_per_batch,
-            progress=lambda part: show_stage(f"compiling the model (torch.compile), {part}"),
+            progress=lambda part: self.show_stage(f"compiling the model (torch.compile), {part}"),
         )
-        show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+        self.show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
 
     def _use_torch_without_tiny_cuda_nn(self) -> None:
         """Build the model's hash grids and MLPs in torch when tiny-cuda-nn is not installed, as nerfstudio falls back
@@ -290,39 +281,17 @@ class ContinualTrainer(Trainer):
             )
         model.implementation = "torch"  # type: ignore[attr-defined]
 
-    @property
-    def training_state(self) -> TrainingState:
-        return self._training_state
+    def extend_viewer(self, viewer: Viewer) -> None:
+        """Add to nerfstudio's viewer before its page first answers (the viewer's trainer adds the continual panel)."""
 
-    @training_state.setter
-    def training_state(self, state: TrainingState) -> None:
+    def show_stage(self, stage: str) -> None:
+        """Say what set-up is doing before training starts (the viewer's trainer shows it in its panel)."""
+
+    def pause_waits(self) -> bool:
         # with several processes a pause (the viewer's button, from its own thread) starts at the end of an
         # iteration, where every process learns of it (hold_while_paused); nerfstudio's loop, seeing it sooner, would
         # stop process 0 alone while the others wait in the next gradient all-reduce
-        if state == "paused" and distributed.is_distributed():
-            self.pause_requested = True
-        else:
-            self._training_state = state
-
-    def pause_now(self) -> bool:
-        """Whether training pauses (or stays paused) from this iteration's end: what hold_while_paused holds on."""
-        if self.pause_requested:
-            self._training_state = "paused"
-            self.pause_requested = False
-        return self._training_state == "paused" and not self.stop_training
-
-    def _install_panel(self, viewer: Viewer) -> ContinualPanel:
-        """The continual panel, in the viewer from the moment it answers (before the model compiles)."""
-        pipeline = self.pipeline
-        panel = ContinualPanel(
-            pipeline.status,
-            pipeline.request_next_task,
-            lambda: pipeline.datamanager.train_dataset,
-            self.config.viewer,
-        )
-        panel.install(viewer, self.training_state)
-        self.callbacks += panel.training_callbacks(self)
-        return panel
+        return distributed.is_distributed()
 
     def _check_viewer_warnings(self) -> None:
         if isinstance(self.viewer_state, Viewer):  # nerfstudio calls this right after the viewer starts
@@ -492,9 +461,3 @@ class ContinualTrainer(Trainer):
             "scalers": self.grad_scaler.state_dict(),
             "rng": rng_states(),
         }
-
-    def _init_viewer_state(self) -> None:
-        # nerfstudio's init_scene shows every training frame with its pixels; only released tasks may be shown, and
-        # the panel drew them when it was installed at set-up
-        if self.panel is None:
-            super()._init_viewer_state()

@@ -39,15 +39,6 @@ def is_distributed() -> bool:
     return comms.get_world_size() > 1
 
 
-PEER_CLOSED = ("Connection closed by peer", "Connection reset by peer", "Broken pipe")
-"""gloo's words for a connection another process closed by ending (its collectives then fail in every process)."""
-
-
-def lost_a_peer(error: BaseException) -> bool:
-    """Whether `error` is a collective failing because another process ended: that process's end is the cause."""
-    return isinstance(error, RuntimeError) and any(words in str(error) for words in PEER_CLOSED)
-
-
 def is_main() -> bool:
     """Whether this process evaluates, writes results and checkpoints and serves the viewer (global rank 0)."""
     return comms.is_main_process()

@@ -8,8 +8,8 @@ from typing import Optional
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 
-from continual_nerf.dataparsers.capture import HELD_OUT
 from continual_nerf.errors import ContinualConfigError, plural
+from continual_nerf.metadata_keys import HELD_OUT
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """continual-nerf-replay-capture: write a dataset into a capture folder frame by frame, as a live capture would.
 
 A recorded drive or scan replayed this way lets `ns-train continual-ngp-stream` (and its viewer) be watched while
-tasks stream in. Frames follow the continual-stream protocol (continual_nerf/streaming/capture_folder.py).
+tasks stream in. Frames follow the continual-stream protocol (continual_nerf/dataparsers/capture_folder.py).
 The poses written are the dataparser's, already fitted into its scene box: read them with `--normalization none`.
 """
 
@@ -22,11 +22,11 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from continual_nerf.core.interrupts import EXIT_CODES
+from continual_nerf.dataparsers.capture_folder import ENTRY_RANK, TRAINING_FILE, trained_task
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.transforms_json import DISTORTION_KEYS
 from continual_nerf.errors import ContinualNerfError, DatasetError
-from continual_nerf.streaming.capture_folder import ENTRY_RANK, TRAINING_FILE, trained_task
+from continual_nerf.interrupts import EXIT_CODES
 
 TRAINING_POLL_SECONDS = 0.2
 """How often --wait-for-training looks at what the training run trains."""

@@ -26,9 +26,9 @@ from continual_nerf.core import distributed
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
+from continual_nerf.dataparsers.capture_folder import CaptureTasks, StreamFrame, announce_training
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParser, StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.streaming.capture_folder import CaptureTasks, StreamFrame, announce_training
 
 
 @dataclass

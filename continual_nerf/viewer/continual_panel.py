@@ -3,8 +3,9 @@ the task colours, the accuracy matrix as a picture with the latest mean PSNR, an
 "Pause after this task" and "Follow the newest task". Everything else (live render, render and export tabs,
 pause/resume) is nerfstudio's viewer.
 
-The Trainer builds the panel when the viewer runs (as nerfstudio's Trainer builds its viewer) and installs it as soon
-as the viewer answers; the panel reads the pipeline's `ContinualStatus` and never imports the pipeline.
+The viewer's trainer (live_trainer.py) builds the panel when the viewer runs (as nerfstudio's Trainer builds its
+viewer) and installs it before the viewer's page first answers; the panel reads the pipeline's `ContinualStatus` and
+never imports the pipeline.
 """
 
 from __future__ import annotations
@@ -43,6 +44,10 @@ PANEL_LABEL = "Continual learning"
 """Title of the panel's folder in the viewer."""
 PROGRESS_LABEL = "Progress:"
 """Start of the panel's progress line."""
+FINISHED = "training finished"
+"""The progress line once training has ended."""
+PAUSED = "paused"
+"""Start of the progress line while training is paused."""
 NO_ROW_YET = "measured when task 1 ends"
 """What the accuracy fields say before the first task has ended."""
 MARKDOWN_ROOT = Path(__file__).parent
@@ -100,8 +105,11 @@ class ContinualPanel:
         request_next_task: Callable[[], None],
         dataset: Callable[[], ContinualDataset],
         options: ContinualViewerConfig,
+        paused: Callable[[], bool] = lambda: False,
     ) -> None:
         self.status = status
+        self.paused = paused
+        """Whether training is paused (nerfstudio's Pause Training, "Pause after this task"), or about to pause."""
         self.dataset = dataset
         """The training dataset: a streaming run replaces it whenever a task arrives."""
         self.options = options
@@ -128,6 +136,8 @@ class ContinualPanel:
         """(open task, task whose pixels the dataset holds) when the frustums were last drawn."""
         self.stage: Optional[str] = None
         """What set-up is doing while training has not started; None once it has."""
+        self.finished = False
+        """Whether training has ended."""
         self._refreshed = 0.0
 
     @property
@@ -181,9 +191,9 @@ class ContinualPanel:
             show_step(self.viewer, step)
 
     def _after_training(self, step: int) -> None:
+        self.finished = True
         self.refresh()
-        self._show_progress("training finished")
-        for control in (self.next_task, self.pause_after_task):
+        for control in (self.next_task, self.pause_after_task, self.follow):
             control.set_disabled(True)
         if self.viewer is not None:
             show_step(self.viewer, step)
@@ -228,11 +238,21 @@ class ContinualPanel:
         """Rewrite the panel's texts and pictures from the pipeline's status."""
         status = self.status()
         self.task.value = task_text(status)
-        self._show_progress(status.progress if self.stage is None else f"setting up: {self.stage}")
+        self._show_progress(self._progress_text(status.progress))
         self.mean_psnr.value = mean_psnr_text(status.mean_psnr)
         if self.pictures is not None:
             self.pictures.show(status.known_tasks, status.psnr_rows)
         self._refreshed = time.monotonic()
+
+    def _progress_text(self, progress: str) -> str:
+        """The progress line: set-up stage, the open task's budget, or that training is paused or finished."""
+        if self.finished:
+            return FINISHED
+        if self.paused() and self.stage is not None:
+            return f"{PAUSED} before training starts; Resume Training starts it"
+        if self.paused():
+            return f"{PAUSED} ({progress}); Resume Training goes on"
+        return progress if self.stage is None else f"setting up: {self.stage}"
 
     def _show_progress(self, text: str) -> None:
         if self.progress is not None:

@@ -9,8 +9,8 @@ from nerfstudio.configs.base_config import ViewerConfig
 
 DEFAULT_MAX_RES = 64
 """Max res of the live render. nerfstudio renders a still view at this size while holding training's lock; on a
-2-core CPU 64 kept training at >= 80% of its speed and 128 did not (`python -m continual_nerf.bench.viewer_cost`,
-docs/benchmarks.md)."""
+2-core CPU 64 kept training at >= 80% of its speed and 128 did not (`python -m continual_nerf.bench.viewer_cost`
+measures it)."""
 DEFAULT_TRAIN_UTIL = 0.95
 """Share of the time nerfstudio's render scheduling leaves training (measured with DEFAULT_MAX_RES)."""
 

@@ -20,6 +20,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS, HELD_OUT
 from continual_nerf.validated_config import ValidatedConfig
 
 OrientationMethod = Literal["pca", "up", "vertical", "none"]
@@ -30,13 +31,6 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 PRINCIPAL_POINT_MARGIN = 0.1
 """How far outside the image a principal point may lie, as a fraction of the image's width or height."""
-
-FISHEYE_CROP_RADIUS = "fisheye_crop_radius"
-"""DataparserOutputs.metadata key of CaptureFrames.fisheye_crop_radius, named after transforms.json's file-wide key."""
-
-HELD_OUT = "held_out"
-"""DataparserOutputs.metadata key of CaptureFrames.held_out (transforms.json's test_filenames): the continual split's
-test frames instead of every --pipeline.datamanager.test-interval-th."""
 
 ASPECT_TOLERANCE = 0.01
 """Relative difference of width/height ratios up to which images count as a resized copy of the calibrated ones

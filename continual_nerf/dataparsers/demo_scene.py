@@ -18,6 +18,12 @@ import numpy as np
 ROOM_MIN = np.array([-10.0, -2.5, 0.0])
 ROOM_MAX = np.array([10.0, 2.5, 3.0])
 EYE_HEIGHT = 1.5
+ROOMS = 4
+"""Rooms in a row in the `rooms` scene, each as long as the room, joined by doorways the camera walks through."""
+DOOR_Y = (-1.7, -0.1)
+"""The doorways' extent across the rooms (the camera walks at y = -0.9 +- 0.3) and their height, metres."""
+DOOR_HEIGHT = 2.2
+WALL_THICKNESS = 0.2
 
 
 @dataclass(frozen=True)
@@ -49,13 +55,37 @@ class Scene:
 
 def room(rng: np.random.Generator) -> Scene:
     """The corridor-room: textured walls whose colour drifts along the room, crates along both long walls."""
-    return Scene(lo=ROOM_MIN, hi=ROOM_MAX, crates=make_crates(rng), surface=_room_colour)
+    return Scene(lo=ROOM_MIN, hi=ROOM_MAX, crates=make_crates(rng), surface=room_colour(ROOM_MIN[0], ROOM_MAX[0]))
 
 
-def make_crates(rng: np.random.Generator, count: int = 14) -> list[Crate]:
-    """Crates spread along both long walls, each with its own colour."""
+def rooms(rng: np.random.Generator) -> Scene:
+    """ROOMS corridor-rooms in a row, joined by doorways: the walls' colour drifts over all of them, so no two rooms
+    look alike, and each room has its own crates."""
+    length = ROOM_MAX[0] - ROOM_MIN[0]
+    hi = ROOM_MAX + np.array([(ROOMS - 1) * length, 0.0, 0.0])
+    crates = [crate for i in range(ROOMS) for crate in make_crates(rng, start=ROOM_MIN[0] + i * length)]
+    for i in range(1, ROOMS):
+        crates += _partition(ROOM_MIN[0] + i * length)
+    return Scene(lo=ROOM_MIN, hi=hi, crates=crates, surface=room_colour(ROOM_MIN[0], hi[0]))
+
+
+def _partition(x: float) -> List[Crate]:
+    """A wall across the rooms at `x` with a doorway: two wall pieces beside it and a lintel above it."""
+    grey = np.array([0.82, 0.8, 0.76])
+    lo_x, hi_x = x - WALL_THICKNESS / 2, x + WALL_THICKNESS / 2
+    pieces = [
+        ((lo_x, ROOM_MIN[1], 0.0), (hi_x, DOOR_Y[0], ROOM_MAX[2])),
+        ((lo_x, DOOR_Y[1], 0.0), (hi_x, ROOM_MAX[1], ROOM_MAX[2])),
+        ((lo_x, DOOR_Y[0], DOOR_HEIGHT), (hi_x, DOOR_Y[1], ROOM_MAX[2])),
+    ]
+    return [Crate(lo=np.array(lo), hi=np.array(hi), rgb=grey) for lo, hi in pieces]
+
+
+def make_crates(rng: np.random.Generator, count: int = 14, start: float = ROOM_MIN[0]) -> list[Crate]:
+    """Crates spread along both long walls of the room that starts at x = `start`, each with its own colour."""
     crates = []
-    for i, x in enumerate(np.linspace(ROOM_MIN[0] + 1.0, ROOM_MAX[0] - 1.0, count)):
+    length = ROOM_MAX[0] - ROOM_MIN[0]
+    for i, x in enumerate(np.linspace(start + 1.0, start + length - 1.0, count)):
         side = 1.0 if i % 2 == 0 else -1.0
         size = rng.uniform([0.4, 0.4, 0.4], [0.9, 0.8, 1.6])
         y_wall = ROOM_MAX[1] if side > 0 else ROOM_MIN[1]
@@ -66,15 +96,16 @@ def make_crates(rng: np.random.Generator, count: int = 14) -> list[Crate]:
     return crates
 
 
-def camera_path(num_frames: int, rng: np.random.Generator) -> np.ndarray:
-    """Camera-to-world matrices (num_frames, 3, 4), OpenGL convention, in capture order."""
+def camera_path(num_frames: int, rng: np.random.Generator, num_rooms: int = 1) -> np.ndarray:
+    """Camera-to-world matrices (num_frames, 3, 4), OpenGL convention, in capture order: a walk along `num_rooms`
+    rooms in a row, forward only, looking at the left wall and swaying as in one room."""
     t = np.linspace(0.0, 1.0, num_frames)
-    x = ROOM_MIN[0] + 1.5 + t * (ROOM_MAX[0] - ROOM_MIN[0] - 3.0)
+    x = ROOM_MIN[0] + 1.5 + t * (num_rooms * (ROOM_MAX[0] - ROOM_MIN[0]) - 3.0)
     phase = rng.uniform(0, 2 * np.pi, size=3)
-    y = -0.9 + 0.3 * np.sin(2 * np.pi * 2 * t + phase[0])
-    z = EYE_HEIGHT + 0.15 * np.sin(2 * np.pi * 3 * t + phase[1])
-    yaw = np.pi / 2 + np.deg2rad(30.0) * np.sin(2 * np.pi * 4 * t + phase[2])
-    pitch = np.deg2rad(-12.0 + 6.0 * np.sin(2 * np.pi * 5 * t))
+    y = -0.9 + 0.3 * np.sin(2 * np.pi * 2 * num_rooms * t + phase[0])
+    z = EYE_HEIGHT + 0.15 * np.sin(2 * np.pi * 3 * num_rooms * t + phase[1])
+    yaw = np.pi / 2 + np.deg2rad(30.0) * np.sin(2 * np.pi * 4 * num_rooms * t + phase[2])
+    pitch = np.deg2rad(-12.0 + 6.0 * np.sin(2 * np.pi * 5 * num_rooms * t))
     return look_matrices(np.stack([x, y, z], axis=-1), yaw, pitch)
 
 
@@ -94,21 +125,39 @@ def checker(u: np.ndarray, v: np.ndarray, period: float) -> np.ndarray:
 
 def hue_along(x: np.ndarray, start: float, end: float, saturation: float, value: float) -> np.ndarray:
     """Colour that drifts with the position x from start to end, so tasks differ in colour too."""
-    hue = (x - start) / (end - start) * 0.85
-    return np.stack([np.array(colorsys.hsv_to_rgb(h, saturation, value)) for h in hue.ravel()]).reshape(*x.shape, 3)
+    return hsv_to_rgb((x - start) / (end - start) * 0.85, saturation, value)
 
 
-def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> np.ndarray:
+def hsv_to_rgb(hue: np.ndarray, saturation: float, value: float) -> np.ndarray:
+    """colorsys.hsv_to_rgb over an array of hues (..., 3): the same arithmetic, so the same colours to the last bit."""
+    scaled = hue * 6.0
+    sector = np.floor(scaled)  # colorsys truncates; the hues here are never negative
+    f = scaled - sector
+    p = np.full_like(hue, value * (1.0 - saturation))
+    q = value * (1.0 - saturation * f)
+    t = value * (1.0 - saturation * (1.0 - f))
+    v = np.full_like(hue, value)
+    table = np.stack([(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)])  # (6, 3, ...)
+    index = (sector.astype(np.int64) % 6)[None, None]
+    return np.moveaxis(np.take_along_axis(table, np.broadcast_to(index, (1, 3, *hue.shape)), axis=0)[0], 0, -1)
+
+
+def room_colour(start: float, end: float) -> SurfaceColour:
+    """The texture of rooms from x = `start` to `end`, its colour drifting along them."""
+    return lambda points, axis, positive: _room_colour(points, axis, positive, start, end)
+
+
+def _room_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray, start: float, end: float) -> np.ndarray:
     """Texture of the room's walls, floor and ceiling at hit points."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     colour = np.empty_like(points)
     side = axis == 1
-    base = hue_along(x, ROOM_MIN[0], ROOM_MAX[0], 0.55, 0.95)
+    base = hue_along(x, start, end, 0.55, 0.95)
     stripes = 0.75 + 0.25 * np.sin(2 * np.pi * x / 0.37) * np.sin(2 * np.pi * z / 0.29)
     tiles = 0.65 + 0.35 * checker(x, z, 0.5)
     colour[side] = base[side] * (tiles * stripes)[side, None]
     floor = (axis == 2) & ~positive
-    floor_base = hue_along(-x, ROOM_MIN[0], ROOM_MAX[0], 0.35, 0.8)
+    floor_base = hue_along(start + end - x, start, end, 0.35, 0.8)
     colour[floor] = floor_base[floor] * (0.55 + 0.45 * checker(x, y, 0.8))[floor, None]
     ceiling = (axis == 2) & positive
     colour[ceiling] = (0.8 + 0.15 * np.sin(2 * np.pi * x / 2.0))[ceiling, None] * np.array([0.95, 0.93, 0.88])

@@ -1,6 +1,6 @@
 """`continual-stream`: frames read from a capture folder that another process is still writing.
 
-The capture protocol and its reader live in continual_nerf/streaming/capture_folder.py; this module is its
+The capture protocol and its reader live in continual_nerf/dataparsers/capture_folder.py; this module is its
 nerfstudio dataparser (options and outputs) for `ns-train continual-ngp-stream continual-stream --data <folder>`.
 """
 
@@ -13,8 +13,8 @@ from typing import Literal, Optional, Type
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 
 from continual_nerf.dataparsers.capture import CaptureDataParserConfig
+from continual_nerf.dataparsers.capture_folder import CaptureTasks
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.streaming.capture_folder import CaptureTasks
 
 
 @dataclass
@@ -24,7 +24,7 @@ class StreamDataParserConfig(CaptureDataParserConfig):
     _target: Type = field(default_factory=lambda: StreamDataParser)
     """The dataparser this config builds."""
     data: Path = Path("capture")
-    """Capture folder another process writes frames into (protocol: continual_nerf/streaming/capture_folder.py)."""
+    """Capture folder another process writes frames into (protocol: continual_nerf/dataparsers/capture_folder.py)."""
     frames_per_task: int = 20
     """A task closes once this many frames have arrived (0: only `.task` markers close tasks)."""
     poll_seconds: float = 0.5

@@ -8,7 +8,7 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List, Literal, Type
+from typing import Callable, Dict, List, Literal, Optional, Type
 
 import numpy as np
 import torch
@@ -22,6 +22,12 @@ from continual_nerf.dataparsers.demo_capture import PoseNoiseKind
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
 
+DemoScene = Literal["room", "street", "rooms", "long-street"]
+DEFAULT_FRAMES: Dict[str, int] = {"room": 120, "street": 120, "rooms": 480, "long-street": 480}
+"""Capture instants of each scene when --num-frames is not given: the long scenes keep the short ones' density."""
+RIGS = ("street", "long-street")
+"""Scenes captured by the three-camera rig."""
+
 
 @dataclass
 class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
@@ -32,10 +38,12 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """The dataparser this config builds."""
     data: Path = Path("data/continual-demo")
     """Folder the rendered scene is written to, and reused from when it already holds the same scene."""
-    scene: Literal["room", "street"] = "room"
-    """room: one camera walks along a corridor-room; street: a vehicle's front, front-left and front-right cameras."""
-    num_frames: int = 120
-    """Capture instants along the path, in capture order (one image each in the room, three in the street)."""
+    scene: DemoScene = "room"
+    """room: one camera walks along a corridor-room; street: a vehicle's front, front-left and front-right cameras;
+    rooms and long-street: long captures, four rooms in a row and a street five times as long, never revisited."""
+    num_frames: Optional[int] = None
+    """Capture instants along the path, in capture order (one image each in the rooms, three in the streets); None: 120
+    for room and street, 480 for rooms and long-street."""
     width: int = 64
     """Image width in pixels."""
     height: int = 48
@@ -66,7 +74,7 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
         super().validate()
         for name in ("num_frames", "width", "height", "exposure_segments"):
             value = getattr(self, name)
-            if value < 1:
+            if value is not None and value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be at least 1, got {value}")
         if not 0 < self.fov_degrees < 180:
             raise ContinualConfigError(f"continual-demo --fov-degrees must be in (0, 180), got {self.fov_degrees}")
@@ -80,6 +88,11 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
                 raise ContinualConfigError(
                     f"continual-demo --{name.replace('_', '-')} must not be negative, got {value}"
                 )
+
+    @property
+    def frames(self) -> int:
+        """Capture instants along the path: --num-frames, or the scene's default."""
+        return self.num_frames if self.num_frames is not None else DEFAULT_FRAMES[self.scene]
 
     @property
     def changes_colour(self) -> bool:
@@ -107,7 +120,7 @@ class ContinualDemoDataParser(DataParser):
 
     def _scene_folder(self) -> Path:
         c = self.config
-        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.num_frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
+        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
 
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
@@ -115,14 +128,19 @@ class ContinualDemoDataParser(DataParser):
     def capture(self) -> DemoCapture:
         """The scene and its images' exact poses, instants and cameras."""
         rng = np.random.default_rng(self.config.seed)
-        if self.config.scene == "street":
-            scene = demo_street.street(rng)
-            poses, instants = demo_street.rig_path(self.config.num_frames, rng)
-            cameras = np.tile(np.arange(len(demo_street.CAMERA_YAWS)), self.config.num_frames)
+        count, scene_name = self.config.frames, self.config.scene
+        if scene_name in RIGS:
+            length = demo_street.LONG_STREET_LENGTH if scene_name == "long-street" else None
+            scene = demo_street.street(rng) if length is None else demo_street.street(rng, length)
+            poses, instants = (
+                demo_street.rig_path(count, rng) if length is None else demo_street.rig_path(count, rng, length)
+            )
+            cameras = np.tile(np.arange(len(demo_street.CAMERA_YAWS)), count)
             return DemoCapture(scene, poses, instants, cameras)
-        scene = demo_scene.room(rng)
-        frames = np.arange(self.config.num_frames)
-        return DemoCapture(scene, demo_scene.camera_path(self.config.num_frames, rng), frames, np.zeros_like(frames))
+        num_rooms = demo_scene.ROOMS if scene_name == "rooms" else 1
+        scene = demo_scene.rooms(rng) if scene_name == "rooms" else demo_scene.room(rng)
+        frames = np.arange(count)
+        return DemoCapture(scene, demo_scene.camera_path(count, rng, num_rooms), frames, np.zeros_like(frames))
 
     def _render_scene(self, folder: Path, capture: DemoCapture) -> None:
         """Render every frame into `folder` (and its transforms.json, exact poses)."""
@@ -215,7 +233,7 @@ class ContinualDemoDataParser(DataParser):
         )
         transform = torch.eye(4)[:3]
         transform[:, 3] = torch.from_numpy(-centre).float()
-        rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene == "street" else {}
+        rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene in RIGS else {}
         return DataparserOutputs(
             image_filenames=[images / f"frame_{i:05d}.png" for i in range(len(poses))],
             cameras=cameras,

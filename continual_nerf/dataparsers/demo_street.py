@@ -14,6 +14,8 @@ from continual_nerf.dataparsers.demo_scene import Crate, Scene, checker, hue_alo
 STREET_MIN = np.array([-40.0, -6.0, 0.0])
 STREET_MAX = np.array([40.0, 6.0, 12.0])
 """The street between its facades (y = +-6 m), up to the sky at 12 m."""
+LONG_STREET_LENGTH = 400.0
+"""Length of the `long-street` scene, metres: five times the street, new facades all the way."""
 CAMERA_HEIGHT = 1.8
 """Height of the rig's cameras above the road, metres."""
 CAMERA_YAWS = (0.0, 45.0, -45.0)
@@ -22,20 +24,33 @@ CAMERA_PITCH = -4.0
 """Every camera looks this many degrees down."""
 
 
-def street(rng: np.random.Generator) -> Scene:
+def street(rng: np.random.Generator, length: float = STREET_MAX[0] - STREET_MIN[0]) -> Scene:
     """Facades with windows whose colour drifts along the street, a road with lane marks, parked cars, posts and
-    bays that stand out from the facades."""
-    return Scene(lo=STREET_MIN, hi=STREET_MAX, crates=_street_objects(rng), surface=_street_colour)
+    bays that stand out from the facades; `length` metres long."""
+    lo, hi = street_bounds(length)
+    return Scene(
+        lo=lo,
+        hi=hi,
+        crates=_street_objects(rng, lo[0], hi[0]),
+        surface=lambda points, axis, positive: _street_colour(points, axis, positive, lo[0], hi[0]),
+    )
 
 
-def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> np.ndarray:
+def street_bounds(length: float) -> Tuple[np.ndarray, np.ndarray]:
+    """The corners of a street `length` metres long, centred on the origin."""
+    lo, hi = STREET_MIN.copy(), STREET_MAX.copy()
+    lo[0], hi[0] = -length / 2, length / 2
+    return lo, hi
+
+
+def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray, start: float, end: float) -> np.ndarray:
     """Facades (y walls), road (floor), sky (ceiling) and the street's two ends."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     colour = np.empty_like(points)
     facade = axis == 1
     window = ((x % 2.5) > 0.6) & ((x % 2.5) < 1.9) & ((z % 3.0) > 0.9) & ((z % 3.0) < 2.4) & (z > 2.5)
     bands = 0.8 + 0.2 * checker(x, z, 1.25)
-    walls = hue_along(x + 3.0 * positive, STREET_MIN[0], STREET_MAX[0], 0.45, 0.9) * bands[:, None]
+    walls = hue_along(x + 3.0 * positive, start, end, 0.45, 0.9) * bands[:, None]
     glass = np.array([0.15, 0.2, 0.3]) + 0.1 * np.sin(x / 3.0)[:, None]
     colour[facade] = np.where(window[:, None], glass, walls)[facade]
     road = (axis == 2) & ~positive
@@ -54,16 +69,16 @@ def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -
     return colour
 
 
-def _street_objects(rng: np.random.Generator) -> List[Crate]:
+def _street_objects(rng: np.random.Generator, start: float, end: float) -> List[Crate]:
     """Parked cars along both kerbs, posts on the pavements and bays standing out from the facades."""
     objects = []
     for side in (1.0, -1.0):
-        for x in np.arange(STREET_MIN[0] + 4.0, STREET_MAX[0] - 4.0, 9.0) + rng.uniform(-2.0, 2.0):
+        for x in np.arange(start + 4.0, end - 4.0, 9.0) + rng.uniform(-2.0, 2.0):
             size = np.array([rng.uniform(3.6, 4.6), 1.8, rng.uniform(1.3, 1.7)])
             objects.append(_box(x, side * 3.8, size, colorsys.hsv_to_rgb(rng.uniform(), 0.6, 0.85)))
-        for x in np.arange(STREET_MIN[0] + 8.0, STREET_MAX[0] - 6.0, 12.0) + rng.uniform(-3.0, 3.0):
+        for x in np.arange(start + 8.0, end - 6.0, 12.0) + rng.uniform(-3.0, 3.0):
             objects.append(_box(x, side * 5.3, np.array([0.3, 0.3, 4.5]), (0.25, 0.25, 0.28)))
-        for x in np.arange(STREET_MIN[0] + 10.0, STREET_MAX[0] - 10.0, 16.0) + rng.uniform(-4.0, 4.0):
+        for x in np.arange(start + 10.0, end - 10.0, 16.0) + rng.uniform(-4.0, 4.0):
             size = np.array([rng.uniform(3.0, 6.0), 0.8, rng.uniform(6.0, 11.0)])
             objects.append(_box(x, side * 5.6, size, colorsys.hsv_to_rgb(rng.uniform(), 0.3, 0.75)))
     return objects
@@ -74,14 +89,18 @@ def _box(x: float, y: float, size: np.ndarray, rgb: Tuple[float, float, float]) 
     return Crate(lo=lo, hi=lo + size, rgb=np.array(rgb))
 
 
-def rig_path(num_instants: int, rng: np.random.Generator) -> Tuple[np.ndarray, np.ndarray]:
-    """Camera-to-world matrices (3 * num_instants, 3, 4) of the rig, OpenGL convention, in capture order (front,
-    front-left, front-right at each instant), and the instant of each image."""
+def rig_path(
+    num_instants: int, rng: np.random.Generator, length: float = STREET_MAX[0] - STREET_MIN[0]
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Camera-to-world matrices (3 * num_instants, 3, 4) of the rig driving down a street `length` metres long, OpenGL
+    convention, in capture order (front, front-left, front-right at each instant), and the instant of each image."""
     t = np.linspace(0.0, 1.0, num_instants)
     phase = rng.uniform(0, 2 * np.pi, size=2)
-    x = STREET_MIN[0] + 8.0 + t * (STREET_MAX[0] - STREET_MIN[0] - 16.0)  # the street's ends stay ahead and behind
-    y = -1.8 + 0.25 * np.sin(2 * np.pi * 1.5 * t + phase[0])
-    heading = 0.04 * np.sin(2 * np.pi * 2 * t + phase[1])
+    laps = length / (STREET_MAX[0] - STREET_MIN[0])  # the same weave per metre on a longer street
+    lo, hi = street_bounds(length)
+    x = lo[0] + 8.0 + t * (hi[0] - lo[0] - 16.0)  # the street's ends stay ahead and behind
+    y = -1.8 + 0.25 * np.sin(2 * np.pi * 1.5 * laps * t + phase[0])
+    heading = 0.04 * np.sin(2 * np.pi * 2 * laps * t + phase[1])
     positions = np.stack([x, y, np.full_like(x, CAMERA_HEIGHT)], axis=-1)
     cameras = [
         look_matrices(positions, heading + np.deg2rad(yaw), np.full_like(x, np.deg2rad(CAMERA_PITCH)))

@@ -44,10 +44,10 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from continual_nerf.core.interrupts import INTERRUPTS
 from continual_nerf.dataparsers.capture import CaptureOutputs, fit_into_box, fitted_poses
 from continual_nerf.dataparsers.transforms_json import natural_key, parse_intrinsics, transforms_pose
 from continual_nerf.errors import DatasetError, first_line
+from continual_nerf.interrupts import INTERRUPTS
 from continual_nerf.untrusted_files import open_inside, real_path_inside
 
 if TYPE_CHECKING:

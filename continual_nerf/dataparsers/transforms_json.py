@@ -13,8 +13,9 @@ from typing import Any, List, Mapping, Optional, Tuple
 import numpy as np
 from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, CameraType
 
-from continual_nerf.dataparsers.capture import FISHEYE_CROP_RADIUS, check_intrinsics, check_pose
+from continual_nerf.dataparsers.capture import check_intrinsics, check_pose
 from continual_nerf.errors import DatasetError
+from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 """transforms.json intrinsics every frame needs, from the frame itself or from the whole file."""

@@ -1,0 +1,198 @@
+"""docs/results.md and the README's results table, regenerated: the current code's numbers, replaced, never appended.
+
+    python -m continual_nerf.bench.results [--jobs 2] [--device cpu] [--output-dir outputs/results]
+
+Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
+demo scenes at 5 x 240 and 10 x 120, and the real-capture benchmark's flaws with the features the README recommends
+for them, then rewrites `docs/results.md` whole and the table between the README's `results` markers. Each section
+names the benchmark command that makes it alone.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Mapping, Sequence, Tuple
+
+import torch
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from continual_nerf.atomic_files import write_text_atomically
+from continual_nerf.bench import quality, real_capture
+from continual_nerf.bench.demo_runs import Device
+from continual_nerf.bench.grid import RunSummary, Setting, source_commit
+
+QUALITY_SETTINGS = ("5x240", "10x120")
+"""The quality grid's settings: five tasks, and ten tasks of half the budget (the same 1200 iterations)."""
+QUALITY_RECIPES = ("continual-ngp", "continual-ngp, paper recipe", "every pixel kept", "iNGP-Incre", quality.JOINT)
+"""The quality grid's recipes: the defaults, the paper's recipe, what any replay can reach, no replay, the bound."""
+ROOM_CAPTURES = ("clean", "exposure +-30 %", "poses off 1 deg, 1 %")
+ROOM_FEATURES = ("off", "colour transform per image", "pose refinement from mid-task")
+STREET_CAPTURES = ("clean", "camera responses +-20 %")
+STREET_FEATURES = ("off", "codes per image")
+ALIGNED_CAPTURES = ("clean", "poses off 1 deg, 1 %, independent")
+ALIGNED_FEATURES = ("off", "pose refinement")
+ALIGNMENT = "--pipeline.test-pose-alignment-steps 50"
+"""Test poses fitted to their images before they are measured: how captures registered image by image are measured."""
+README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
+"""The README's generated table lies between these lines."""
+
+
+def command(module: str, arguments: Sequence[Tuple[str, Sequence[str]]]) -> str:
+    """The benchmark command that makes one section alone."""
+    words = [f"python -m continual_nerf.bench.{module}"]
+    for option, values in arguments:
+        words.append(f"{option} {shlex.join(values)}")
+    return " ".join(words)
+
+
+@dataclass
+class Results:
+    """Regenerates docs/results.md and the README's results table from the benchmark modules."""
+
+    jobs: int = 1
+    """Runs trained at once, each in a process of its own (give each OMP_NUM_THREADS=cores/jobs)."""
+    device: Device = "cpu"
+    """Device every run trains on."""
+    data: Path = Path("data/continual-demo")
+    """Where the demo scenes are generated (and reused from)."""
+    output_dir: Path = Path("outputs/results")
+    """The runs; finished ones found here are read back, not trained again."""
+    docs: Path = Path("docs/results.md")
+    """The page written (replaced whole)."""
+    readme: Path = Path("README.md")
+    """The README whose table between the results markers is replaced."""
+
+    def quality(self) -> quality.QualityBenchmark:
+        return quality.QualityBenchmark(
+            settings=QUALITY_SETTINGS,
+            recipes=QUALITY_RECIPES,
+            **self.common("quality"),  # type: ignore[arg-type]
+        )
+
+    def real_captures(self) -> Dict[str, real_capture.RealCaptureBenchmark]:
+        def bench(scene: str, captures: Tuple[str, ...], features: Tuple[str, ...], *options: str):
+            return real_capture.RealCaptureBenchmark(
+                scenes=(scene,),  # type: ignore[arg-type]
+                captures=captures,
+                features=features,
+                options=options,
+                **self.common(f"real-capture-{scene}{'-aligned' if options else ''}"),  # type: ignore[arg-type]
+            )
+
+        return {
+            "room": bench("room", ROOM_CAPTURES, ROOM_FEATURES),
+            "street": bench("street", STREET_CAPTURES, STREET_FEATURES),
+            "room, test poses fitted": bench("room", ALIGNED_CAPTURES, ALIGNED_FEATURES, ALIGNMENT),
+        }
+
+    def common(self, name: str) -> Dict[str, object]:
+        return {"jobs": self.jobs, "device": self.device, "data": self.data, "output_dir": self.output_dir / name}
+
+    def main(self) -> None:
+        quality_bench = self.quality()
+        quality_results = quality_bench.measure()
+        capture_benches = self.real_captures()
+        capture_results = {name: bench.measure() for name, bench in capture_benches.items()}
+        commits = {
+            run.commit
+            for by_setting in quality_results.values()
+            for runs in by_setting.values()
+            for run in runs.values()
+        }
+        commits |= {
+            run.commit for by_scene in capture_results.values() for runs in by_scene.values() for run in runs.values()
+        }
+        lines = [*self.header(sorted(commits)), *quality_section(quality_bench, quality_results)]
+        for name, bench in capture_benches.items():
+            lines += capture_section(name, bench, capture_results[name])
+        write_text_atomically(self.docs, "\n".join(lines))
+        replace_readme_table(self.readme, summary_table(quality_results))
+        CONSOLE.print(f"[bold green]Wrote {self.docs} and the results table of {self.readme}")
+
+    def header(self, commits: List[str]) -> List[str]:
+        threads = os.environ.get("OMP_NUM_THREADS", "all cores")
+        return [
+            "# Results",
+            "",
+            "Generated by `python -m continual_nerf.bench.results` (replaced whole each time it runs; older numbers "
+            "are in git history). Every run trains through nerfstudio's Trainer on the built-in demo scenes (1024 rays "
+            "per batch, the full model) and is measured on each task's held-out test frames.",
+            "",
+            f"Generated at commit `{source_commit()}`, runs trained at {', '.join(f'`{c}`' for c in commits)}; "
+            f"{platform.machine()} machine with {os.cpu_count()} cores, "
+            f"device {self.device}, torch {torch.__version__}, {self.jobs} run(s) at once, OMP_NUM_THREADS "
+            f"{threads}. Training seconds depend on the machine and on what else ran beside; PSNR does not.",
+            "",
+        ]
+
+
+def quality_section(bench: quality.QualityBenchmark, results: quality.Results) -> List[str]:
+    run_alone = command(
+        "quality", [("--settings", bench.settings), ("--recipes", bench.recipes), ("--output-dir", ["outputs/quality"])]
+    )
+    lines = [
+        "## Continual-ngp against its bounds",
+        "",
+        f"`{run_alone}`",
+        "",
+        "*every pixel kept*: continual-ngp whose replayed rays all come from a buffer holding every pixel of every "
+        "closed task (what the continual setting forbids keeping): the most any replay can give. *joint*: every "
+        "image from the first step, the same total iterations. *right after own task*: the mean over tasks of each "
+        "task's PSNR when its own training ended.",
+        "",
+    ]
+    for scene, by_setting in results.items():
+        for key, runs in by_setting.items():
+            lines += [f"### {scene}, {Setting.parse(key)}", "", *quality.markdown_table(runs), ""]
+    return lines
+
+
+def capture_section(
+    name: str, bench: real_capture.RealCaptureBenchmark, results: Dict[str, Dict[str, RunSummary]]
+) -> List[str]:
+    arguments = [("--scenes", bench.scenes), ("--captures", bench.captures), ("--features", bench.features)]
+    if bench.options:
+        arguments.append(("--options", bench.options))
+    run_alone = command("real_capture", [*arguments, ("--output-dir", ["outputs/real-capture"])])
+    lines = [f"## Real-capture flaws: {name}, {Setting.parse(bench.setting)}", "", f"`{run_alone}`", ""]
+    for runs in results.values():
+        lines += [*real_capture.markdown_table(runs), ""]
+    return lines
+
+
+def summary_table(results: quality.Results) -> str:
+    """The README's table: final mean test PSNR of each recipe in each scene and setting."""
+    columns = [(scene, key) for scene, by_setting in results.items() for key in by_setting]
+    recipes: Mapping[str, RunSummary] = next(iter(next(iter(results.values())).values()))
+    head = ["final mean test PSNR (dB)", *(f"{scene}, {key.replace('x', ' x ')}" for scene, key in columns)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for recipe in recipes:
+        cells = [f"{results[scene][key][recipe].final_mean_psnr:.2f}" for scene, key in columns]
+        lines.append("| " + " | ".join([recipe, *cells]) + " |")
+    return "\n".join(lines)
+
+
+def replace_readme_table(readme: Path, table: str) -> None:
+    """Put `table` between the README's results markers, or say in one line why it cannot."""
+    begin, end = map(re.escape, README_MARKERS)
+    text = readme.read_text()
+    updated, count = re.subn(
+        f"{begin}\n.*?{end}", lambda _: f"{README_MARKERS[0]}\n{table}\n{README_MARKERS[1]}", text, flags=re.S
+    )
+    if count != 1:
+        raise SystemExit(f"{readme}: expected one pair of lines {README_MARKERS[0]} / {README_MARKERS[1]}")
+    write_text_atomically(readme, updated)
+
+
+def entrypoint() -> None:
+    tyro.cli(Results).main()
+
+
+if __name__ == "__main__":
+    entrypoint()
