@@ -21,7 +21,7 @@ import zipfile
 import zlib
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, BinaryIO, Dict, List, Optional, Sequence
+from typing import Any, BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import pyarrow as pa
@@ -54,6 +54,9 @@ DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
 
 SUBPROCESS_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 """One thread per training subprocess: two processes with two threads each on two busy cores run ten times slower."""
+
+RUN_TIMEOUT = 600.0
+"""Seconds a test's subprocess may take before it counts as hung: generous, as two busy cores make runs slow."""
 
 
 def tiny_config(
@@ -154,18 +157,26 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
 
 def run_ns_train(command: Sequence[str]) -> subprocess.CompletedProcess:
     """Run an ns-train command line to its end (one thread), capturing its output as text."""
-    return subprocess.run(command, check=False, capture_output=True, text=True, timeout=600, env=SUBPROCESS_ENV)
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=SUBPROCESS_ENV)
+    stdout, stderr = finish(run, "ns-train")
+    return subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
 
 
-def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
+def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int) -> None:
     """Send signal `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into
     place)."""
-    deadline = time.monotonic() + timeout
-    while not checkpoint.exists():
-        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
-        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
-        time.sleep(0.01)
+    wait_while_running(process, checkpoint.exists, f"{checkpoint.name} is saved")
     os.kill(process.pid, number)
+
+
+def wait_while_running(process: subprocess.Popen, done: Callable[[], bool], what: str) -> None:
+    """Wait until `done()`; the test fails if `process` ends first, or is still running without it after RUN_TIMEOUT
+    seconds (a hang)."""
+    deadline = time.monotonic() + RUN_TIMEOUT
+    while not done():
+        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {what}"
+        assert time.monotonic() < deadline, f"still running after {RUN_TIMEOUT:g} s, a hang, and not yet {what}"
+        time.sleep(0.01)
 
 
 def train(config: ContinualTrainerConfig) -> ContinualTrainer:
@@ -775,18 +786,21 @@ def recorded_train_loop(
         trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
     if global_rank == dying_rank:
         trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
+    pause: Dict[str, int] = {}
     if global_rank == 0 and pausing_seconds:  # after every callback of the trainer's own
-        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds)))
+        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds, pause)))
     trainer.train()
-    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
+    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step, **pause}
     (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
 
 
-def _pause(trainer: ContinualTrainer, seconds: float, step: int) -> None:
-    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do."""
+def _pause(trainer: ContinualTrainer, seconds: float, pause: Dict[str, int], step: int) -> None:
+    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do;
+    `pause` records the step training was at when it resumed."""
 
     def resume() -> None:
         time.sleep(seconds)
+        pause["step_when_resumed"] = trainer.step
         trainer.training_state = "training"
 
     if step == 1:
@@ -808,9 +822,24 @@ def two_process_command(output_dir: Path, timeout_seconds: float = 60.0, **optio
 
 
 def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
-    """two_process_command, run to its end."""
+    """two_process_command, run to its end (a hang fails the test once RUN_TIMEOUT has passed)."""
     command = two_process_command(output_dir, timeout_seconds, **options)
-    return subprocess.run(command, check=False, env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600)
+    run = subprocess.Popen(command, env=SUBPROCESS_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stdout, stderr = finish(run, "the two-process run")
+    return subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
+
+
+def finish(process: subprocess.Popen, what: str, timeout: float = RUN_TIMEOUT) -> Tuple[str, str]:
+    """The process's output once it has ended; a process still running after `timeout` seconds is a hang: it is
+    killed and the test fails saying so."""
+    try:
+        return process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+        raise AssertionError(
+            f"{what} still ran after {timeout:g} s, a hang; its last output: {stderr[-2000:]}"
+        ) from None
 
 
 def launch_from_json(arguments: str) -> None:

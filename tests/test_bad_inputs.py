@@ -351,7 +351,12 @@ def reuse_earlier_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]
 CORPUS = [
     BadInput("num-tasks-0", option("--pipeline.datamanager.num-tasks must be at least 1, got 0", num_tasks=0)),
     BadInput(
-        "num-tasks-too-many", option("--pipeline.datamanager.num-tasks 9 is too large for 12 frames", num_tasks=9)
+        "num-tasks-too-many",
+        option(
+            ": 12 frames are too few for --pipeline.datamanager.num-tasks 9: a task needs 2 frames, one to train on "
+            "and one to test on; use at most 6 tasks",
+            num_tasks=9,
+        ),
     ),
     BadInput(
         "budget-0-iterations",

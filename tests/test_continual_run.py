@@ -98,5 +98,17 @@ def test_a_wall_clock_budget_per_task_ends_each_task_and_the_run(run_dir):
     matrix = trainer.pipeline.accuracy
     assert matrix.finished and len(matrix.psnr) == 2
     assert matrix.steps[1] > matrix.steps[0], "task 2 trained for its own second"
-    # nerfstudio's loop sets the next step before it sees the stop flag
-    assert trainer.step == matrix.steps[1] + 1, "the run stopped right after the last task"
+    assert trainer.step == matrix.steps[1], "the run ends at its last task's last step"
+    assert checkpoint_names(config) == [f"step-{step:09d}.ckpt" for step in matrix.steps], "no checkpoint past it"
+
+
+def test_a_run_its_tasks_end_before_max_num_iterations_ends_at_its_last_trained_step(run_dir):
+    config = tiny_config(run_dir, demo_parser(num_frames=12), num_tasks=2, iterations_per_task=2)
+    config.max_num_iterations = 50
+    trainer = train(config)
+    assert trainer.pipeline.accuracy.steps == [1, 3] and trainer.step == 3
+    assert checkpoint_names(config) == ["step-000000001.ckpt", "step-000000003.ckpt"], "none of step 4, never trained"
+
+
+def checkpoint_names(config) -> list:
+    return sorted(path.name for path in config.get_checkpoint_dir().iterdir())

@@ -110,7 +110,7 @@ def test_invalid_depth_pixels_never_contribute_to_the_loss():
 def test_the_replay_buffer_keeps_depth_with_its_pixels(run_dir):
     config = depth_config(run_dir)
     config.pipeline.datamanager = dataclasses.replace(
-        config.pipeline.datamanager, replay_buffer_size=0.5, replay_buffer_share=1.0
+        config.pipeline.datamanager, replay_buffer_fraction=0.5, replay_buffer_share=1.0
     )
     trainer = set_up(config)
     pipeline = trainer.pipeline
@@ -146,7 +146,7 @@ def test_replayed_rays_take_the_oracles_depth_when_it_is_distilled(run_dir):
 def test_a_depth_run_killed_mid_task_resumes_to_the_uninterrupted_result(run_dir, monkeypatch, single_thread):
     def config(timestamp: str) -> ContinualTrainerConfig:
         config = depth_config(run_dir, num_tasks=3, iterations_per_task=4, should_decay_sigma=True)
-        config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, replay_buffer_size=0.2)
+        config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, replay_buffer_fraction=0.2)
         config.timestamp, config.steps_per_save = timestamp, 5  # saves: steps 3 (task end), 5 (mid task 2), 7, ...
         config.save_config()
         return config

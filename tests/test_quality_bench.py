@@ -209,12 +209,12 @@ def test_every_pixel_kept_replays_every_closed_tasks_pixels_and_nothing_the_orac
     bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
     datamanager = config_of(bench, Recipe.of("every pixel kept", RECIPES["every pixel kept"])).pipeline.datamanager
     assert datamanager.replay_buffer_share == 1.0
-    buffer = ExperienceReplayBuffer(datamanager.replay_buffer_size)
+    buffer = ExperienceReplayBuffer(datamanager.replay_buffer_fraction, datamanager.replay_buffer_pixels)
     flat, rgb = torch.arange(10_000), torch.rand(10_000, 3)
     buffer.add_task(0, flat, rgb, total_pixels=30_000)
     buffer.add_task(1, flat + 10_000, rgb, total_pixels=30_000)
     assert buffer.tasks_held() == {0: 10_000, 1: 10_000}, "two closed tasks, all of their pixels"
-    assert CONTINUAL_NGP.pipeline.datamanager.replay_buffer_size == 0, "the registered method keeps no pixel"
+    assert CONTINUAL_NGP.pipeline.datamanager.replay_buffer_fraction == 0, "the registered method keeps no pixel"
 
 
 @pytest.mark.slow

@@ -36,10 +36,10 @@ JOINT = "joint (upper bound)"
 RECIPES: Dict[str, str] = {
     "continual-ngp": "continual-ngp",
     "continual-ngp, paper recipe": "continual-ngp-paper",
-    "continual-ngp, ER 1 %": "continual-ngp --pipeline.datamanager.replay-buffer-size 0.01",
-    "continual-ngp, ER 5 %": "continual-ngp --pipeline.datamanager.replay-buffer-size 0.05",
+    "continual-ngp, ER 1 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.01",
+    "continual-ngp, ER 5 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.05",
     # keeps what the continual setting forbids keeping: how far the tasks' arrival alone leaves a run from the bound
-    "every pixel kept": "continual-ngp --pipeline.datamanager.replay-buffer-size 1e9 "
+    "every pixel kept": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 1 "
     "--pipeline.datamanager.replay-buffer-share 1.0",
     "iNGP-Incre": "continual-ngp-incre",
     # the bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter too

@@ -37,7 +37,7 @@ from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
-from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.errors import ContinualConfigError, DatasetError, plural
 from continual_nerf.validated_config import ValidatedConfig
 
 
@@ -65,9 +65,12 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     current_task_fraction: Union[float, Literal["uniform", "sqrt"]] = 0.5
     """Share of each batch drawn from the open task: a fixed share, sqrt (1/sqrt(k) in task k), or uniform over all
     released pixels (the paper: ~1/k in task k); the rest replays earlier tasks."""
-    replay_buffer_size: float = 0.0
-    """Experience replay: real pixels of closed tasks kept, as a fraction of the training pixels (below 1) or a
-    count; 0 keeps none (the paper)."""
+    replay_buffer_fraction: float = 0.0
+    """Experience replay: real pixels of closed tasks kept, as a share of the training pixels from 0 to 1 (1 keeps
+    every pixel); 0 keeps none (the paper)."""
+    replay_buffer_pixels: int = 0
+    """Experience replay by count: real pixels of closed tasks kept, instead of
+    --pipeline.datamanager.replay-buffer-fraction; 0 keeps none."""
     replay_buffer_share: float = 0.5
     """Share of the replayed rays drawn from the replay buffer while it holds pixels; the oracle renders the rest."""
     # nerfstudio's options for image-based sampling: batches here are drawn from the released tasks' pixels
@@ -114,11 +117,7 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 "--pipeline.datamanager.current-task-fraction must be uniform, sqrt or a share in (0, 1], "
                 f"got {self.current_task_fraction}"
             )
-        if self.replay_buffer_size < 0 or (self.replay_buffer_size > 0 and not self.replay):
-            raise ContinualConfigError(
-                "--pipeline.datamanager.replay-buffer-size must be 0 or positive, and needs replay, "
-                f"got {self.replay_buffer_size} with replay {self.replay}"
-            )
+        self._validate_replay_buffer()
         if not 0 <= self.replay_buffer_share <= 1:
             raise ContinualConfigError(
                 f"--pipeline.datamanager.replay-buffer-share must be in [0, 1], got {self.replay_buffer_share}"
@@ -128,9 +127,46 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 f"--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got {self.train_num_rays_per_batch}"
             )
 
+    def _validate_replay_buffer(self) -> None:
+        fraction, pixels, option = self.replay_buffer_fraction, self.replay_buffer_pixels, "--pipeline.datamanager."
+        if not 0 <= fraction <= 1:
+            raise ContinualConfigError(
+                f"{option}replay-buffer-fraction must be in [0, 1] (a share of the training pixels; "
+                f"{option}replay-buffer-pixels takes a count), got {fraction:g}"
+            )
+        if pixels < 0:
+            raise ContinualConfigError(f"{option}replay-buffer-pixels must be 0 or more, got {pixels}")
+        if fraction > 0 and pixels > 0:
+            raise ContinualConfigError(
+                f"{option}replay-buffer-fraction {fraction:g} and {option}replay-buffer-pixels {pixels} both size the "
+                "replay buffer: give one"
+            )
+        if (fraction > 0 or pixels > 0) and not self.replay:
+            raise ContinualConfigError(
+                f"the replay buffer ({option}replay-buffer-fraction or -pixels) needs replay; this run has "
+                f"{option}replay False"
+            )
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        # a config.yml from before the two options: `replay_buffer_size`, a share below 1 and a count from 1 up
+        size = state.pop("replay_buffer_size", 0)
+        self.__dict__.update(state)
+        if size:
+            self.replay_buffer_fraction, self.replay_buffer_pixels = (size, 0) if size < 1 else (0.0, int(size))
+
     def frames_known_at_start(self) -> bool:
         """Whether every training frame is known when training starts (per-frame codes and poses need it)."""
         return True
+
+    def task_budget_text(self) -> str:
+        """One task's budget, in words (1000 iterations, 20 s)."""
+        if self.seconds_per_task is not None:
+            return f"{self.seconds_per_task:g} s"
+        return plural(self.iterations_per_task, "iteration")
+
+    def describe_tasks(self) -> str:
+        """The tasks and their budget, in words (3 tasks x 1000 iterations)."""
+        return f"{plural(self.num_tasks, 'task')} x {self.task_budget_text()}"
 
     def budgeted_iterations(self) -> Optional[int]:
         """Iterations the whole task budget takes, or None when tasks are timed (or, streaming, counted by the capture)."""
@@ -228,7 +264,8 @@ class ContinualDataManager(VanillaDataManager):
 
     def create_train_dataset(self) -> ContinualDataset:
         outputs = self.train_dataparser_outputs
-        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval)
+        source = str(getattr(self.config.dataparser, "data", "the capture"))
+        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval, source)
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
         dataset = ContinualDataset(

@@ -153,9 +153,12 @@ class ContinualPipeline(VanillaPipeline):
         self.task = TaskState()
         self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
         self.replay_oracle = ReplayOracle(options.train_num_rays_per_batch)
-        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_size)
+        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_fraction, options.replay_buffer_pixels)
         if self.replay_buffer.enabled:
             self.datamanager.replay_buffer = self.replay_buffer
+            if distributed.is_main():
+                total = self.datamanager.total_train_pixels() if options.frames_known_at_start() else None
+                CONSOLE.print(self.replay_buffer.describe(total), markup=False, soft_wrap=True)
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
         self._open_frame_parameters(start=True)

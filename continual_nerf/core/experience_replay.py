@@ -1,7 +1,8 @@
 """Experience replay (optional): a bounded buffer of real pixels of closed tasks, kept beside the replay oracle.
 
-The paper keeps no image. With `--pipeline.datamanager.replay-buffer-size` above 0, a task's end puts a uniform
-random subset of its training pixels into the buffer (CLNeRF's experience replay; neural SLAM keeps keyframe pixels
+The paper keeps no image. With `--pipeline.datamanager.replay-buffer-fraction` (a share of the training pixels) or
+`--pipeline.datamanager.replay-buffer-pixels` (a count) above 0, a task's end puts a uniform random subset of its
+training pixels into the buffer (CLNeRF's experience replay; neural SLAM keeps keyframe pixels
 the same way); every closed task keeps an equal share of the buffer's capacity. Rays drawn from the buffer are
 supervised by their stored colours (and depth, when the model trains on depth), the rest of the replay by the
 oracle. The pipeline owns the buffer, so it is in every checkpoint.
@@ -19,10 +20,12 @@ class ExperienceReplayBuffer(nn.Module):
     """Flat pixel numbers (the training frames' numbering, from which the datamanager regenerates rays) and 8-bit
     colours of closed tasks, at most `capacity(total)` of them, an equal share per task."""
 
-    def __init__(self, size: float) -> None:
+    def __init__(self, fraction: float = 0.0, pixels: int = 0) -> None:
         super().__init__()
-        self.size = size
-        """Pixels to keep: below 1 a fraction of the capture's training pixels, otherwise a count."""
+        self.fraction = fraction
+        """Pixels to keep, as a share of the capture's training pixels (0 to 1)."""
+        self.pixels = pixels
+        """Pixels to keep, as a count (instead of `fraction`)."""
         self.flat = torch.empty(0, dtype=torch.long)
         self.rgb = torch.empty(0, 3, dtype=torch.uint8)
         self.task = torch.empty(0, dtype=torch.long)
@@ -34,7 +37,7 @@ class ExperienceReplayBuffer(nn.Module):
 
     @property
     def enabled(self) -> bool:
-        return self.size > 0
+        return self.fraction > 0 or self.pixels > 0
 
     @property
     def nbytes(self) -> int:
@@ -43,7 +46,20 @@ class ExperienceReplayBuffer(nn.Module):
 
     def capacity(self, total_pixels: int) -> int:
         """Pixels the buffer holds at most, for a capture of `total_pixels` training pixels."""
-        return int(round(self.size * total_pixels)) if self.size < 1 else int(self.size)
+        return min(self.pixels, total_pixels) if self.pixels else int(round(self.fraction * total_pixels))
+
+    def describe(self, total_pixels: Optional[int]) -> str:
+        """What the buffer keeps, in one line; `total_pixels`: the capture's training pixels (None: still arriving)."""
+        if total_pixels is None:
+            kept = f"{self.pixels:,} pixels" if self.pixels else f"{self.fraction:.2%} of the training pixels"
+            return f"Replay buffer: keeps {kept} of the closed tasks, an equal share each"
+        capacity = self.capacity(total_pixels)
+        if capacity >= total_pixels:
+            return f"Replay buffer: keeps every training pixel ({total_pixels:,}) of every closed task"
+        return (
+            f"Replay buffer: keeps {capacity:,} of the {total_pixels:,} training pixels "
+            f"({capacity / total_pixels:.2%}), an equal share per closed task"
+        )
 
     @torch.no_grad()
     def add_task(self, task: int, flat: Tensor, rgb: Tensor, total_pixels: int, depth: Optional[Tensor] = None) -> None:
