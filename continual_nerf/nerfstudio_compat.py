@@ -645,6 +645,15 @@ def trained_model(pipeline: VanillaPipeline) -> nn.Module:
     return pipeline._model
 
 
+def model_state_of(pipeline_state: Mapping[str, Any]) -> Dict[str, Any]:
+    """The model's part of a pipeline's state dict, keyed as the model's own state dict.
+
+    Depends on: `VanillaPipeline` registering its model as `_model` (state-dict keys `_model.`).
+    """
+    prefix = "_model."
+    return {key[len(prefix) :]: value for key, value in pipeline_state.items() if key.startswith(prefix)}
+
+
 def model_keys_of_one_process(pipeline: VanillaPipeline, state: Mapping[str, Any]) -> Dict[str, Any]:
     """The pipeline's state dict `state` with the model's keys as one process has them (no DDP `module.`).
 

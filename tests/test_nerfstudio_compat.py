@@ -454,6 +454,7 @@ def test_the_pipeline_trains_the_model_it_keeps_as_model_and_unwraps_it():
     model = nn.Linear(2, 1)
     pipeline._model = model  # as VanillaPipeline.__init__ keeps it
     assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+    assert compat.model_state_of(pipeline.state_dict()).keys() == model.state_dict().keys(), "the model's own keys"
     compat.wrap_model(pipeline, Wrapper)
     assert pipeline.model is model, "nerfstudio's `model` unwraps the wrapper's module"
     assert isinstance(compat.trained_model(pipeline), Wrapper)

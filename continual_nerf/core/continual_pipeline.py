@@ -34,6 +34,7 @@ from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import (
     model_keys_of_one_process,
+    model_state_of,
     trained_model,
     world_size_for_vanilla_pipeline,
     wrap_model,
@@ -409,8 +410,12 @@ class ContinualPipeline(VanillaPipeline):
             CONSOLE.print(f"Mean test depth abs rel {_optional(abs_rel, '.3f')}, RMSE {_optional(rmse, '.3f')} m")
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
-        if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
+        has_oracle = any(key.startswith(ORACLE_PREFIX) for key in state_dict)
+        if has_oracle and not self.replay_oracle.ready:
             self.replay_oracle.update(self.model)  # builds the copy the saved weights go into
+        elif not has_oracle and self.replay_oracle.ready:
+            # a weights-only checkpoint of a task's end, where the oracle had just become the model
+            state_dict = {**state_dict, **oracle_from_model(state_dict)}
         result = super().load_state_dict(state_dict, strict)
         self._open_frame_parameters(start=False)  # the loaded task continues with the loaded codes and poses
         return result
@@ -436,6 +441,11 @@ class ContinualPipeline(VanillaPipeline):
         self.budget.load_state(state["budget"])
         self.accuracy = AccuracyMatrix(**state["accuracy"])
         self.datamanager.resume_at(self.task.current)
+
+
+def oracle_from_model(state_dict: Mapping[str, Any]) -> Dict[str, Any]:
+    """The replay oracle's keys of a pipeline state dict, holding the model's weights."""
+    return {ORACLE_PREFIX + key: value for key, value in model_state_of(state_dict).items()}
 
 
 def _format_row(values: List[float]) -> str:

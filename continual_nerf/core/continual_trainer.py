@@ -23,17 +23,19 @@ from nerfstudio.viewer.viewer import Viewer
 from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
     check_method,
+    check_resumable,
     checkpoint_steps,
     find_checkpoint,
     read_checkpoint,
     restore_rng_states,
     rng_states,
     save_checkpoint_file,
+    slim_checkpoint,
 )
 from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.core.continual_pipeline import ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.continual_pipeline import ORACLE_PREFIX, ContinualPipeline, ContinualPipelineConfig
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
 from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.nerfstudio_compat import (
@@ -396,6 +398,7 @@ class ContinualTrainer(DeferredPauseTrainer):
         state = read_checkpoint(path)
         self._resumed_from = path.parent
         check_method(state, path, self.config.method_name)
+        check_resumable(state, path, find_checkpoint(path.parent, None))
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
@@ -440,7 +443,9 @@ class ContinualTrainer(DeferredPauseTrainer):
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete."""
+        """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete. The one
+        saved before it keeps the model's weights alone if its step ended a task (the run viewer's task slider and
+        ns-eval read those), and goes if it did not: only the latest is needed to resume."""
         if step == self._saved_step or step < first_step(self):
             return  # saved at its task's end already, or no step trained since the run started or resumed
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
@@ -449,7 +454,19 @@ class ContinualTrainer(DeferredPauseTrainer):
             for older in checkpoint_steps(self.checkpoint_dir).values():
                 if older != path:
                     older.unlink()
+        elif self._saved_step is not None:
+            self._keep_weights_only(self._saved_step)
         self._saved_step = step
+
+    def _keep_weights_only(self, step: int) -> None:
+        """The checkpoint of `step`, superseded: weights only where a task ended there, removed elsewhere."""
+        older = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        if not older.exists():
+            return
+        if step in self.pipeline.accuracy.steps:
+            slim_checkpoint(older, ORACLE_PREFIX)
+        else:
+            older.unlink()
 
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {
