@@ -849,6 +849,7 @@ def launch_from_json(arguments: str) -> None:
     recording = {name: options.pop(name) for name in recorded if name in options}
     timeout_seconds = options.pop("timeout_seconds")
     config = tiny_config(Path(options.pop("output_dir")), demo_parser(), **options.pop("tiny", {}))
+    config.max_num_iterations = options.pop("max_num_iterations", None)
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **options)
     config.timestamp = "two-processes"
     launch_two_processes(config, timeout_seconds, **recording)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import signal
@@ -96,17 +95,19 @@ def test_both_ranks_hold_the_same_oracle_after_every_switch(two_process_output: 
         assert tensors and all(torch.equal(main[key], other[key]) for key in tensors)
 
 
-def test_a_two_process_checkpoint_resumes_in_one_process(two_process_output: Path, tmp_path: Path, single_thread):
-    run_dir = two_process_run_dir(two_process_output)
-    first_task_end = ITERATIONS_PER_TASK - 1
-    config = tiny_config(tmp_path / "resumed", demo_parser(), NUM_TASKS, ITERATIONS_PER_TASK)
-    config = dataclasses.replace(config, load_dir=run_dir / "nerfstudio_models", load_step=first_task_end)
+def test_a_two_process_checkpoint_resumes_in_one_process(tmp_path: Path, single_thread):
+    # a run that stops one step before its last task ends: its latest checkpoint is one to resume
+    stopped = two_process_run(tmp_path / "two", num_tasks=2, iterations_per_task=3, max_num_iterations=5)
+    assert stopped.returncode == 0, stopped.stderr[-3000:]
+    run_dir = two_process_run_dir(tmp_path / "two")
+    config = tiny_config(tmp_path / "resumed", demo_parser(), num_tasks=2, iterations_per_task=3)
+    config.load_dir = run_dir / "nerfstudio_models"
     trainer = train(config)
     resumed = AccuracyMatrix.read(trainer.base_dir / ACCURACY_MATRIX_FILENAME)
     two_processes = AccuracyMatrix.read(run_dir / ACCURACY_MATRIX_FILENAME)
-    assert resumed.finished and len(resumed.psnr) == NUM_TASKS
+    assert not two_processes.finished and two_processes.steps == [2]
+    assert resumed.finished and resumed.steps == [2, 5]
     assert resumed.psnr[0] == two_processes.psnr[0]  # the row measured before the checkpoint is kept
-    assert resumed.steps == two_processes.steps
 
 
 def test_a_seconds_budget_switches_both_ranks_at_the_same_step(tmp_path: Path):

@@ -398,13 +398,13 @@ class ContinualTrainer(DeferredPauseTrainer):
         state = read_checkpoint(path)
         self._resumed_from = path.parent
         check_method(state, path, self.config.method_name)
-        check_resumable(state, path, find_checkpoint(path.parent, None))
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
         if accuracy.finished:
             raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
         self._check_budget_reaches(state["step"], path)
+        check_resumable(state, path, find_checkpoint(path.parent, None))
         if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
             restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
