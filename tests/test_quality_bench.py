@@ -15,7 +15,7 @@ from helpers import DEMO_CACHE
 from PIL import Image
 
 from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
-from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_against_tasks, total
+from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_quality, series, total
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
@@ -250,8 +250,18 @@ def test_a_sweep_over_task_counts_is_plotted_one_line_per_recipe_and_budget(tmp_
         scene: {key: {"a": run(30.0 - tasks), JOINT: run(31.0)} for key, tasks in (("2x3", 2), ("4x3", 4), ("8x3", 8))}
         for scene in ("room", "street")
     }
-    plot_against_tasks(results, tmp_path / "plot.png")
+    plot_quality(results, tmp_path / "plot.png")
     image = Image.open(tmp_path / "plot.png")
     assert image.size[0] > image.size[1] > 100, "two panels side by side"
     assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 20, "lines drawn, not blank"
     assert total(Setting.parse("4x3")) == "12 iterations" and total(Setting.parse("4x2.5s")) == "10 s"
+
+
+def test_the_plot_runs_against_the_budget_per_task_where_the_tasks_are_the_same_and_per_budget_where_not():
+    same_tasks = [Setting.parse(key) for key in ("5x60", "5x120", "5x240")]
+    assert series(same_tasks, lambda s: float(s.num_tasks)) == {"": [(60.0, 5.0), (120.0, 5.0), (240.0, 5.0)]}
+    sweep = [Setting.parse(key) for key in ("2x60", "5x60", "5x120", "10x60")]
+    lines = series(sweep, lambda s: 0.0)
+    assert set(lines) == {" (60 per task)", " (120 per task)"} and len(lines[" (60 per task)"]) == 3
+    fixed_total = [Setting.parse(key) for key in ("2x600", "5x240", "10x120")]
+    assert set(series(fixed_total, lambda s: 0.0)) == {" (1200 iterations in all)"}
