@@ -184,6 +184,14 @@ def train(config: ContinualTrainerConfig) -> ContinualTrainer:
     return train_like_ns_train(config)
 
 
+def stopped_run(config: ContinualTrainerConfig, last_step: int) -> Path:
+    """Train `config` as a run stopped after `last_step` (as Ctrl-C or a lost machine leaves one); returns its latest
+    checkpoint, the one to resume (a closed task's earlier checkpoints keep the model's weights only)."""
+    config.max_num_iterations = last_step + 1
+    train(config)
+    return config.get_checkpoint_dir() / f"step-{last_step:09d}.ckpt"
+
+
 WIDTH, HEIGHT = 32, 24
 """Image size of the transforms.json, COLMAP, ScanNet and TUM captures (each Waymo camera has its own, SIZES)."""
 

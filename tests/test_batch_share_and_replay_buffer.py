@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from helpers import demo_parser, tiny_config, train
+from helpers import demo_parser, stopped_run, tiny_config, train
 from PIL import Image
 
 from continual_nerf.core.continual_dataset import ClosedTaskError
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.errors import ContinualConfigError
 
@@ -92,9 +93,13 @@ def test_a_run_with_the_buffer_holds_closed_tasks_pixels_only_and_resumes_with_t
         image = np.array(Image.open(dataset.image_filenames[frame]))  # a writable copy for torch
         assert torch.equal(rgb, torch.from_numpy(image[local // width, local % width, :3])), "the pixel's own colour"
 
-    resumed = tiny_config(tmp_path / "resumed", demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
-    resumed.pipeline.datamanager.replay_buffer_fraction = 0.02
-    resumed.load_checkpoint = config.get_checkpoint_dir() / "step-000000005.ckpt"  # the end of task 2
+    def with_buffer(name: str) -> ContinualTrainerConfig:
+        run = tiny_config(tmp_path / name, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
+        run.pipeline.datamanager.replay_buffer_fraction = 0.02
+        return run
+
+    resumed = with_buffer("resumed")
+    resumed.load_checkpoint = stopped_run(with_buffer("stopped"), last_step=5)  # the end of task 2
     again = train(resumed).pipeline.replay_buffer
     for name in ("flat", "rgb", "task"):
         assert torch.equal(getattr(again, name), getattr(buffer, name)), f"the resumed run's buffer {name} differs"

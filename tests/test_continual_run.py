@@ -9,6 +9,7 @@ import pytest
 import torch
 from helpers import demo_parser, tiny_config, train
 
+from continual_nerf.checkpoints import WEIGHTS_ONLY
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 
 pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
@@ -48,10 +49,12 @@ def test_accuracy_matrix_and_a_checkpoint_per_task_are_written(finished_run):
     assert matrix.steps == [3, 7]
     checkpoints = sorted((finished_run / "nerfstudio_models").glob("step-*.ckpt"))
     assert [c.name for c in checkpoints] == ["step-000000003.ckpt", "step-000000007.ckpt"]
-    state = torch.load(checkpoints[0], map_location="cpu", weights_only=False)
-    assert any(key.startswith("replay_oracle.model.") for key in state["pipeline"]), "oracle saved"
-    assert state["pipeline"]["_extra_state"]["task"]["current"] == 1, "task 2 was released at that point"
-    assert set(state["optimizers"]) == {"proposal_networks", "fields"}
+    closed, latest = (torch.load(c, map_location="cpu", weights_only=False) for c in checkpoints)
+    assert closed[WEIGHTS_ONLY] and not closed["optimizers"], "a closed task's checkpoint keeps the weights only"
+    assert not any(key.startswith("replay_oracle.") for key in closed["pipeline"]), "its oracle equals its model"
+    assert closed["pipeline"]["_extra_state"]["task"]["current"] == 1, "task 2 was released at that point"
+    assert any(key.startswith("replay_oracle.model.") for key in latest["pipeline"]), "the latest one resumes"
+    assert set(latest["optimizers"]) == {"proposal_networks", "fields"} and not latest.get(WEIGHTS_ONLY)
     assert (finished_run / "dataparser_transforms.json").exists()
 
 

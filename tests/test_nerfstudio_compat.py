@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 import viser.transforms as vtf
-from helpers import demo_parser, tiny_config, train
+from helpers import demo_parser, stopped_run, tiny_config, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -169,11 +169,9 @@ def test_seed_like_ns_train_seeds_python_numpy_and_torch():
 def test_a_resumed_run_ends_at_the_same_step_as_the_uninterrupted_one(tmp_path):
     """Depends on nerfstudio 1.1.5 counting max_num_iterations from the resumed step (set_resume_step)."""
     parser = demo_parser()
-    whole = tiny_config(tmp_path / "whole", parser, num_tasks=2, iterations_per_task=2)
-    train(whole)
-    checkpoint_dir = whole.get_checkpoint_dir()
+    stopped = tiny_config(tmp_path / "stopped", parser, num_tasks=2, iterations_per_task=2)
     resumed = tiny_config(tmp_path / "resumed", parser, num_tasks=2, iterations_per_task=2)
-    resumed.load_checkpoint = checkpoint_dir / "step-000000001.ckpt"  # the end of task 1
+    resumed.load_checkpoint = stopped_run(stopped, last_step=1)  # the end of task 1
     trainer = train(resumed)
     matrix = AccuracyMatrix.read(resumed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     assert matrix.finished and matrix.steps == [1, 3] and trainer.step == 3

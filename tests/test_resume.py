@@ -10,7 +10,16 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, run_ns_train, signal_when_saved, tiny_config, train
+from helpers import (
+    SUBPROCESS_ENV,
+    demo_parser,
+    ns_train_command,
+    run_ns_train,
+    signal_when_saved,
+    stopped_run,
+    tiny_config,
+    train,
+)
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
@@ -102,10 +111,9 @@ def test_a_run_killed_mid_task_resumes_to_the_uninterrupted_result(tmp_path, sin
 
 def test_a_resumed_run_counts_its_progress_and_eta_to_the_run_s_last_step(tmp_path, capsys, single_thread):
     parser = demo_parser(num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT)
-    first = tiny_config(tmp_path / "first", parser, num_tasks=2, iterations_per_task=3)
-    train(first)
+    stopped = tiny_config(tmp_path / "stopped", parser, num_tasks=2, iterations_per_task=3)
     resumed = tiny_config(tmp_path / "resumed", parser, num_tasks=2, iterations_per_task=3)
-    resumed.load_checkpoint = first.get_checkpoint_dir() / "step-000000002.ckpt"  # the end of task 1
+    resumed.load_checkpoint = stopped_run(stopped, last_step=2)  # the end of task 1
     resumed.logging.local_writer.enable = True
     resumed.logging.steps_per_log, resumed.logging.local_writer.max_log_size = 1, 0  # every step, one line each
     capsys.readouterr()
