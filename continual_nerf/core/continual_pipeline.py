@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Mapping, Optional, Type
+from typing import Any, Dict, List, Literal, Mapping, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -16,17 +16,30 @@ from nerfstudio.engine.trainer import Trainer
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.markup import escape
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.change_guard import GuardCount, OpenTaskView, open_task_view
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import AlignedEvalCameras, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.core.sessions import (
+    SESSIONS_KEY,
+    SessionRecord,
+    model_options,
+    options_differing,
+    per_frame_rows,
+    size_difference,
+    task_ranges,
+    with_earlier_rows,
+)
 from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import (
@@ -39,6 +52,12 @@ from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
 """State-dict keys of the replay oracle's frozen copy in a checkpoint."""
+CONTINUE_OPTION = "--pipeline.continue-with-new-capture"
+"""The option that starts a new session from a loaded run (a resume command leaves it out)."""
+MODEL_PREFIX = "_model."
+"""State-dict keys of the model in a checkpoint (nerfstudio's VanillaPipeline)."""
+BUFFER_STATE = "replay_buffer._extra_state"
+"""State-dict key of the experience replay buffer in a checkpoint."""
 BASE_LR_KEY = "continual_base_lr"
 """Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
 POSE_GROUP = "camera_opt"
@@ -70,6 +89,16 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     test_pose_alignment_steps: int = 0
     """Before a test frame is measured, fit its pose to its image for this many steps with the field frozen (BARF's
     test-time pose alignment, for poses with errors of their own per image); 0 measures it from its given pose."""
+    continue_with_new_capture: bool = False
+    """With --load-dir (or --load-checkpoint): go on learning the capture given now as a new session, its tasks after
+    the loaded run's, the loaded model the replay oracle of every earlier task; the earlier capture is never read
+    again. Off: --load-dir resumes the loaded run on its own capture."""
+    change_guard: Literal["later-sessions", "every-task", "off"] = "later-sessions"
+    """Skip replayed rays of earlier tasks whose surface an open-task frame sees changed (the new images win where
+    they see a change): in the tasks of a continued run's later sessions, in every task, or never (the paper)."""
+    change_threshold: float = 0.1
+    """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
+    which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
 
     def validate(self) -> None:
         super().validate()
@@ -81,6 +110,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             raise ContinualConfigError(
                 f"--pipeline.test-pose-alignment-steps must be at least 0, got {self.test_pose_alignment_steps}"
             )
+        if not 0 < self.change_threshold < 1:
+            raise ContinualConfigError(f"--pipeline.change-threshold must be in (0, 1), got {self.change_threshold}")
         for name in ("lr_decay_start", "pose_refinement_start"):
             value = getattr(self, name)
             if not 0 <= value < 1:
@@ -144,6 +175,11 @@ class ContinualPipeline(VanillaPipeline):
             self.datamanager.replay_buffer = self.replay_buffer
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
+        self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
+        self.open_task_view: Optional[OpenTaskView] = None
+        """What the open task's frames show where the oracle renders otherwise (the change guard); None: not built."""
+        self.guard_count = GuardCount()
+        self._said_unavailable = False
         self._open_frame_parameters(start=True)
 
     @property
@@ -194,11 +230,55 @@ class ContinualPipeline(VanillaPipeline):
         return model_outputs, loss_dict, metrics_dict
 
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
-        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4)."""
+        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4); with the
+        change guard on, mark those whose surface an open-task frame sees changed (REPLAY_SKIPPED)."""
         is_replay = batch["is_replay"]
-        if is_replay.any():
-            image = batch["image"]
-            image[is_replay] = self.replay_oracle.render(ray_bundle[is_replay.to(image.device)]).to(image.dtype)
+        if not is_replay.any():
+            return
+        image = batch["image"]
+        replayed = ray_bundle[is_replay.to(image.device)]
+        if not self.guards_replay:
+            image[is_replay] = self.replay_oracle.render(replayed).to(image.dtype)
+            return
+        rgb, distance = self.replay_oracle.render_with_distance(replayed)
+        image[is_replay] = rgb.to(image.dtype)
+        if distance is None:
+            return
+        view = self._open_task_view()
+        points = (replayed.origins + replayed.directions * distance[:, None]).detach().float().cpu()
+        skipped = torch.zeros_like(is_replay)
+        skipped[is_replay] = view.observed_changed(points).to(is_replay.device)
+        batch[REPLAY_SKIPPED] = skipped
+        self.guard_count.replayed += int(is_replay.sum())
+        self.guard_count.skipped += int(skipped.sum())
+
+    @property
+    def guards_replay(self) -> bool:
+        """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard)."""
+        guard = self.config.change_guard
+        later_session = self.datamanager.session_of_task(self.task.current) > 0
+        return self.replays and (guard == "every-task" or (guard == "later-sessions" and later_session))
+
+    def _open_task_view(self) -> OpenTaskView:
+        """The open task's view for the change guard, rendered by the oracle once the task's pixels are read."""
+        task = self.datamanager.data_task
+        if self.open_task_view is None or self.open_task_view.task != task:
+            datamanager = self.datamanager
+            self.open_task_view = open_task_view(
+                task,
+                datamanager.train_dataset,
+                lambda indices: datamanager.train_ray_generator(indices.to(self.device)),
+                self._render_with_distance,
+                self.config.change_threshold,
+                datamanager.config.train_num_rays_per_batch,
+            )
+            self.guard_count = GuardCount()
+        return self.open_task_view
+
+    def _render_with_distance(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, torch.Tensor]:
+        rgb, distance = self.replay_oracle.render_with_distance(ray_bundle)
+        assert distance is not None, "the guard runs for models that render depth"
+        return rgb, distance
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
@@ -253,6 +333,7 @@ class ContinualPipeline(VanillaPipeline):
         if distributed.is_main():
             self.evaluate_seen_tasks(step, trainer.base_dir)
         if decision == TaskDecision.LAST_TASK_DONE:
+            self.close_task()  # its final checkpoint can go on learning a later capture
             trainer.stop_training = True
         else:
             self.open_next_task()
@@ -271,17 +352,36 @@ class ContinualPipeline(VanillaPipeline):
     def before_task_switch(self) -> None:
         """Runs at the end of every task but the last, while its pixels are still readable (e.g. EWC's Fisher)."""
 
-    def open_next_task(self) -> None:
-        """Freeze the model as the replay oracle, close the open task and release the next one."""
+    def close_task(self) -> None:
+        """What the open task leaves while its pixels are readable: the baseline's estimates (EWC's Fisher), the replay
+        buffer's share of its pixels."""
         self.before_task_switch()
         if self.replay_buffer.enabled:
             self._keep_pixels_of_closing_task()
+        if self.guards_replay and distributed.is_main():
+            share = 100 * self.guard_count.share()
+            CONSOLE.print(
+                f"Change guard: {share:.1f} % of task {self.task.current + 1}'s replayed rays skipped (an open-task "
+                "frame sees their surface changed)"
+            )
+
+    def open_next_task(self) -> None:
+        """Close the open task, freeze the model as the replay oracle and release the next task."""
+        self.close_task()
+        self.freeze_oracle()
+        self.open_task(self.task.current + 1)
+
+    def freeze_oracle(self) -> None:
+        """The model as it is now becomes the replay oracle of every task so far."""
         if self.replays:
             distributed.copy_from_main(self.model, self.device)  # every rank's oracle: rank 0's weights, bit for bit
             self.replay_oracle.update(self.model)
-        self.task.current += 1
+
+    def open_task(self, task: int) -> None:
+        """Release `task` with its whole budget, reading its pixels now; its frames' parameters start to learn."""
+        self.task.current = task
         self.budget.start_task()
-        self.datamanager.release(self.task.current)
+        self.datamanager.release(task)
         self._open_frame_parameters(start=True)
 
     def _open_frame_parameters(self, start: bool) -> None:
@@ -324,26 +424,47 @@ class ContinualPipeline(VanillaPipeline):
         return self.get_average_image_metrics(loader, "eval", step, output_path, get_std)
 
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
-        """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
+        """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`. An earlier session's
+        task none of whose test images can be read any more has no value (None: not available)."""
         datamanager = self.datamanager
-        frames = datamanager.seen_test_frames()
+        seen_frames = datamanager.seen_test_frames()
+        available = set(datamanager.eval_dataset.available_frames())
+        frames = torch.tensor([frame for frame in seen_frames.tolist() if frame in available], dtype=torch.long)
+        # the open task's test images are this capture's: at least those are there
         self.eval()
         psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
         self.train()
         tasks = datamanager.test_task_of_frame()[frames]
-        seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
-        row_psnr = [float(psnr[tasks == j].mean()) for j in seen]
-        row_ssim = [float(ssim[tasks == j].mean()) for j in seen]
+        seen = range(int(datamanager.test_task_of_frame()[seen_frames].max()) + 1)  # every task when training jointly
+        row_psnr = [_mean_or_none(psnr[tasks == j]) for j in seen]
+        row_ssim = [_mean_or_none(ssim[tasks == j]) for j in seen]
+        self._say_unavailable([j for j in seen if row_psnr[j] is None])
         self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
         self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step)
         path = self.accuracy.write(output_dir)
         writer.put_dict(
-            name="Continual PSNR per task", scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr)}, step=step
+            name="Continual PSNR per task",
+            scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr) if v is not None},
+            step=step,
         )
         writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
         CONSOLE.print(
             f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
             f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
+        )
+
+    def _say_unavailable(self, tasks: List[int]) -> None:
+        """Say once that earlier sessions' tasks have no test image left to measure."""
+        if not tasks or self._said_unavailable:
+            return
+        self._said_unavailable = True
+        first = self.datamanager.task_split.test_frames[tasks[0]][0]
+        CONSOLE.print(
+            f"Tasks {task_ranges(tasks)} (earlier sessions): their test images are gone "
+            f"({self.datamanager.train_dataparser_outputs.image_filenames[first]}, ...): not available in the accuracy "
+            "matrix",
+            markup=False,
+            soft_wrap=True,
         )
 
     def _print_summary(self, step: int) -> None:
@@ -377,7 +498,40 @@ class ContinualPipeline(VanillaPipeline):
             "budget": self.budget.state(),
             "schedule": self.datamanager.schedule(),
             "accuracy": asdict(self.accuracy),
+            SESSIONS_KEY: self.sessions_record().state(),
         }
+
+    def sessions_record(self) -> SessionRecord:
+        """Every session so far, this one's up to its open task: what a later capture's session continues from."""
+        return self.datamanager.sessions_record(self.task.current + 1, model_options(self.config.model))
+
+    def continue_session(self, state: Dict[str, Any], step: int) -> None:
+        """Start this capture's first task from a checkpoint of the earlier sessions (`state`, at `step`): its model
+        with the earlier frames' rows, as the replay oracle of every earlier task, its replay buffer and accuracy rows;
+        the earlier sessions' open task, whatever was left of it, closed."""
+        model_state = {key[len(MODEL_PREFIX) :]: value for key, value in state.items() if key.startswith(MODEL_PREFIX)}
+        current = self.model.state_dict()
+        assert self.datamanager.earlier is not None, "a continued run records its earlier sessions"
+        rows = per_frame_rows(model_state, current, self.datamanager.earlier.num_train_frames)
+        difference = size_difference(model_state, current, rows)
+        if difference is not None:
+            options = options_differing(self.datamanager.earlier.model_options, model_options(self.config.model))
+            raise ContinualConfigError(
+                f"the model differs in size from the one it continues ({'; '.join(options) or difference}): "
+                "continue with the model options it was trained with"
+            )
+        self.model.update_to_step(step)
+        self.model.load_state_dict(with_earlier_rows(model_state, current, rows))
+        if BUFFER_STATE in state and self.replay_buffer.enabled:
+            self.replay_buffer.set_extra_state(state[BUFFER_STATE])
+        extra = state["_extra_state"]
+        self.accuracy = AccuracyMatrix(**{**extra["accuracy"], "num_tasks": self.known_tasks})
+        self.accuracy.finished, self.accuracy.status = False, "training"
+        self.budget.load_state({**extra["budget"], "iterations_done": 0, "seconds_done": 0.0})
+        self.freeze_oracle()
+        self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
+        self.datamanager.open_released_task()
+        self.open_task(self.task.current)
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.datamanager.check_resumable(state["schedule"])
@@ -387,8 +541,13 @@ class ContinualPipeline(VanillaPipeline):
         self.datamanager.resume_at(self.task.current)
 
 
-def _format_row(values: List[float]) -> str:
-    return "[" + ", ".join(f"{value:.2f}" for value in values) + "] dB"
+def _format_row(values: List[Optional[float]]) -> str:
+    """A row of the accuracy matrix as rich prints it ("n/a": not available)."""
+    return escape("[" + ", ".join("n/a" if value is None else f"{value:.2f}" for value in values) + "] dB")
+
+
+def _mean_or_none(values: torch.Tensor) -> Optional[float]:
+    return float(values.mean()) if len(values) else None
 
 
 def _falling(factor: float, progress: float, start: float) -> float:

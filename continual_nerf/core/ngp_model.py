@@ -14,7 +14,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
-from continual_nerf.core.distillation_loss import distillation_loss
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, distillation_loss
 from continual_nerf.core.per_frame import (
     FRAME_CAMERA,
     FRAME_TASK,
@@ -228,7 +228,11 @@ class ContinualNGPModel(NerfactoModel):
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if "is_replay" in batch:
             del loss_dict["rgb_loss"]
-            loss_dict.update(distillation_loss(outputs["rgb"], batch["image"].to(self.device), batch["is_replay"]))
+            loss_dict.update(
+                distillation_loss(
+                    outputs["rgb"], batch["image"].to(self.device), batch["is_replay"], batch.get(REPLAY_SKIPPED)
+                )
+            )
         return loss_dict
 
     def get_image_metrics_and_images(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -60,7 +60,15 @@ class ReplayOracle(nn.Module):
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
         """Colour (N, 3) the frozen copy renders along each ray, each ray with the appearance code and refined pose of
         the frame it came from, as training rendered that frame."""
+        return self.render_with_distance(ray_bundle)[0]
+
+    @torch.no_grad()
+    def render_with_distance(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """`render`'s colour and the distance (N,) along each ray to the surface the copy renders (its median depth),
+        None for a model that renders no depth."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
         assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
         ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
-        return self.model(ray_bundle)["rgb"]
+        outputs = self.model(ray_bundle)
+        depth = outputs.get("depth")
+        return outputs["rgb"], None if depth is None else depth.view(-1)

@@ -3,6 +3,7 @@ with what a real capture adds (exposure changes, camera colour responses, pose e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -23,6 +24,8 @@ from continual_nerf.errors import ContinualConfigError
 from continual_nerf.validated_config import ValidatedConfig
 
 DemoScene = Literal["room", "street", "rooms", "long-street"]
+SceneChange = Literal["none", "object-moved", "wall-repainted"]
+"""What a later session finds changed in the scene."""
 DEFAULT_FRAMES: Dict[str, int] = {"room": 120, "street": 120, "rooms": 480, "long-street": 480}
 """Capture instants of each scene when --num-frames is not given: the long scenes keep the short ones' density."""
 RIGS = ("street", "long-street")
@@ -69,6 +72,14 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     pose_noise_kind: PoseNoiseKind = "smooth"
     """How the pose errors vary along the capture: smooth (drift, latency: VIO, motion capture) or drawn anew for
     every instant (each image registered on its own: COLMAP)."""
+    change: SceneChange = "none"
+    """The scene as a later session finds it: object-moved (a crate, in the street a parked car, near the middle of
+    the path moved along the wall the camera looks at) or wall-repainted (a stretch of that wall, or facade, painted
+    over); none: as it was."""
+    start_instant: int = 0
+    """First capture instant returned: a capture cut into sessions (instants before it belong to an earlier one)."""
+    end_instant: Optional[int] = None
+    """Capture instant the returned frames stop before (None: the end of the path)."""
 
     def validate(self) -> None:
         super().validate()
@@ -82,6 +93,12 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
             value = getattr(self, name)
             if not 0 <= value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be in [0, 1), got {value}")
+        end = self.frames if self.end_instant is None else self.end_instant
+        if not 0 <= self.start_instant < end <= self.frames:
+            raise ContinualConfigError(
+                f"continual-demo --start-instant {self.start_instant} --end-instant {self.end_instant}: must cut a part "
+                f"of the path's {self.frames} instants (0 <= start < end <= {self.frames})"
+            )
         for name in ("pose_noise_degrees", "pose_noise_translation"):
             value = getattr(self, name)
             if value < 0:
@@ -120,7 +137,8 @@ class ContinualDemoDataParser(DataParser):
 
     def _scene_folder(self) -> Path:
         c = self.config
-        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
+        changed = "" if c.change == "none" else f"_{c.change}"
+        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}{changed}"
 
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
@@ -136,11 +154,27 @@ class ContinualDemoDataParser(DataParser):
                 demo_street.rig_path(count, rng) if length is None else demo_street.rig_path(count, rng, length)
             )
             cameras = np.tile(np.arange(len(demo_street.CAMERA_YAWS)), count)
-            return DemoCapture(scene, poses, instants, cameras)
+            return DemoCapture(self._changed(scene), poses, instants, cameras)
         num_rooms = demo_scene.ROOMS if scene_name == "rooms" else 1
         scene = demo_scene.rooms(rng) if scene_name == "rooms" else demo_scene.room(rng)
         frames = np.arange(count)
-        return DemoCapture(scene, demo_scene.camera_path(count, rng, num_rooms), frames, np.zeros_like(frames))
+        path = demo_scene.camera_path(count, rng, num_rooms)
+        return DemoCapture(self._changed(scene), path, frames, np.zeros_like(frames))
+
+    def _changed(self, scene: demo_scene.Scene) -> demo_scene.Scene:
+        """The scene as --change leaves it (after the whole layout is drawn: nothing else moves)."""
+        street = self.config.scene in RIGS
+        if self.config.change == "object-moved":
+            return demo_street.with_car_moved(scene) if street else demo_scene.with_object_moved(scene)
+        if self.config.change == "wall-repainted":
+            return demo_street.with_facade_repainted(scene) if street else demo_scene.with_wall_repainted(scene)
+        return scene
+
+    def returned_frames(self, capture: DemoCapture) -> np.ndarray:
+        """The frames of the instants --start-instant to --end-instant, in capture order."""
+        c = self.config
+        end = c.frames if c.end_instant is None else c.end_instant
+        return np.nonzero((capture.instants >= c.start_instant) & (capture.instants < end))[0]
 
     def _render_scene(self, folder: Path, capture: DemoCapture) -> None:
         """Render every frame into `folder` (and its transforms.json, exact poses)."""
@@ -218,6 +252,11 @@ class ContinualDemoDataParser(DataParser):
                 write_folder(images, lambda partial: self._write_captured_images(folder, partial, capture))
         centre = (scene.lo + scene.hi) / 2
         scale = 2.0 / float((scene.hi - scene.lo).max())  # the scene's longest side spans nerfstudio's [-1, 1] box
+        kept = self.returned_frames(capture)
+        poses, capture = (
+            poses[kept],
+            dataclasses.replace(capture, instants=capture.instants[kept], cameras=capture.cameras[kept]),
+        )
         scaled = poses.copy()
         scaled[:, :, 3] = (poses[:, :, 3] - centre) * scale
         focal = self._focal()
@@ -235,7 +274,7 @@ class ContinualDemoDataParser(DataParser):
         transform[:, 3] = torch.from_numpy(-centre).float()
         rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene in RIGS else {}
         return DataparserOutputs(
-            image_filenames=[images / f"frame_{i:05d}.png" for i in range(len(poses))],
+            image_filenames=[images / f"frame_{i:05d}.png" for i in kept],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
