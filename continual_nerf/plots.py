@@ -23,17 +23,17 @@ def task_colour_float(task: int) -> Tuple[float, float, float]:
 
 def draw_accuracy_matrix(
     axes: Axes,
-    psnr: Sequence[Sequence[float]],
+    psnr: Sequence[Sequence[Optional[float]]],
     num_tasks: int,
     value_format: Optional[str] = "{:.1f}",
     value_size: float = 7,
 ) -> AxesImage:
     """Heat map of R[i][j] (PSNR of task j after training task i) on `axes`, blank above the diagonal for unseen
-    tasks, the values written in the cells in `value_format` (None: not written; neither beyond 12 tasks), in black
+    tasks and where a value is not available (None), the values written in the cells in `value_format` (None: not written; neither beyond 12 tasks), in black
     on the bright end of the colour map, and the task numbers in the task colours."""
     matrix = np.full((max(len(psnr), 1), num_tasks), np.nan)
     for i, row in enumerate(psnr):
-        matrix[i, : len(row)] = row
+        matrix[i, : len(row)] = np.array(row, dtype=float)  # None: not available, blank
     image = axes.imshow(matrix, cmap="viridis", aspect="auto")
     if value_format is not None and num_tasks <= 12:
         bright = np.asarray(image.norm(matrix)) > 0.6

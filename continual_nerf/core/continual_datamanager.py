@@ -267,11 +267,14 @@ class ContinualDataManager(VanillaDataManager):
         )
 
     def create_train_dataset(self) -> ContinualDataset:
-        outputs = self.train_dataparser_outputs
-        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval)
+        self.task_split = split_capture(self.train_dataparser_outputs, self.config.num_tasks, self.config.test_interval)
         if self.earlier is not None:
             self._join_earlier_sessions(self.earlier)
-            outputs = self.train_dataparser_outputs
+        return self.dataset_of_trajectory()
+
+    def dataset_of_trajectory(self) -> ContinualDataset:
+        """The training frames of the trajectory (`train_dataparser_outputs` and `task_split`), task by task."""
+        outputs = self.train_dataparser_outputs
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
         dataset = ContinualDataset(
@@ -342,7 +345,9 @@ class ContinualDataManager(VanillaDataManager):
         self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
         # ns-eval and ns-render read these; they cover the test frames of every task whose images are there
         self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(
-            self.eval_dataset, image_indices=self.eval_dataset.available_frames(), device=self.device
+            self.eval_dataset,
+            image_indices=tuple(self.eval_dataset.available_frames()),  # type: ignore[arg-type]  # nerfstudio: Tuple[int, ...]
+            device=self.device,
         )
         self.eval_dataloader = RandIndicesEvalDataloader(self.eval_dataset, device=self.device)
 

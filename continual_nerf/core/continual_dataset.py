@@ -56,7 +56,8 @@ class ContinualDataset(InputDataset):
         # nerfstudio's InputDataset would read each mask into its frame's batch, at the image's full size only; masks
         # are read here instead (read_mask), into the record of the pixels training may draw
         super().__init__(dataclasses.replace(dataparser_outputs, mask_filenames=None), scale_factor=scale_factor)
-        self.mask_filenames: Optional[List[Optional[Path]]] = dataparser_outputs.mask_filenames
+        masks = dataparser_outputs.mask_filenames
+        self.mask_filenames: Optional[List[Optional[Path]]] = None if masks is None else list(masks)
         """Per frame a mask, 0 where its pixels never train (None: every pixel trains; a frame's None: its pixels all
         train, or an earlier session's frame, whose mask is recorded)."""
         self.earlier_frames = 0
@@ -247,11 +248,16 @@ def check_mask_headers(dataset: ContinualDataset, frames: Iterable[int]) -> None
             mask_size(dataset, frame)
 
 
+def mask_filename(dataset: ContinualDataset, frame: int) -> Path:
+    filename = None if dataset.mask_filenames is None else dataset.mask_filenames[frame]
+    assert filename is not None, "the frame has a mask file"
+    return filename
+
+
 def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
     """Width and height of the frame's mask, checked: one channel, of its image's size before or after the dataset's
     downscale."""
-    assert dataset.mask_filenames is not None
-    filename = dataset.mask_filenames[frame]
+    filename = mask_filename(dataset, frame)
     size, mode = header(filename, "mask")
     if mode not in MASK_MODES:
         raise DatasetError(f"{filename}: mask mode {mode} is not supported (one channel: 8-bit L or 1-bit)")
@@ -270,8 +276,7 @@ def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
 def read_mask(dataset: ContinualDataset, frame: int) -> Tensor:
     """The frame's mask as its image is loaded, (H, W) bool, True where pixels train: a mask of the image's full size
     is downscaled with the image, one of the downscaled size is read as it is."""
-    assert dataset.mask_filenames is not None
-    filename = dataset.mask_filenames[frame]
+    filename = mask_filename(dataset, frame)
     loaded = int(dataset.cameras.width[frame]), int(dataset.cameras.height[frame])
     scale = 1.0 if mask_size(dataset, frame) == loaded else dataset.scale_factor
     try:

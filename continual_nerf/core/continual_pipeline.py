@@ -35,7 +35,6 @@ from continual_nerf.core.sessions import (
     SessionRecord,
     model_options,
     options_differing,
-    per_frame_rows,
     size_difference,
     task_ranges,
     with_earlier_rows,
@@ -137,8 +136,8 @@ class ContinualStatus:
     """Whether more tasks may still arrive."""
     progress: str
     """The open task's budget: what is left, or what training does once it is spent."""
-    psnr_rows: List[List[float]]
-    """The accuracy matrix so far: test PSNR per task after each finished task."""
+    psnr_rows: List[List[Optional[float]]]
+    """The accuracy matrix so far: test PSNR per task after each finished task (None: not available)."""
     mean_psnr: List[float]
     """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
@@ -509,29 +508,38 @@ class ContinualPipeline(VanillaPipeline):
         """Start this capture's first task from a checkpoint of the earlier sessions (`state`, at `step`): its model
         with the earlier frames' rows, as the replay oracle of every earlier task, its replay buffer and accuracy rows;
         the earlier sessions' open task, whatever was left of it, closed."""
-        model_state = {key[len(MODEL_PREFIX) :]: value for key, value in state.items() if key.startswith(MODEL_PREFIX)}
-        current = self.model.state_dict()
-        assert self.datamanager.earlier is not None, "a continued run records its earlier sessions"
-        rows = per_frame_rows(model_state, current, self.datamanager.earlier.num_train_frames)
-        difference = size_difference(model_state, current, rows)
-        if difference is not None:
-            options = options_differing(self.datamanager.earlier.model_options, model_options(self.config.model))
-            raise ContinualConfigError(
-                f"the model differs in size from the one it continues ({'; '.join(options) or difference}): "
-                "continue with the model options it was trained with"
-            )
-        self.model.update_to_step(step)
-        self.model.load_state_dict(with_earlier_rows(model_state, current, rows))
+        earlier = self.datamanager.earlier
+        assert earlier is not None, "a continued run records its earlier sessions"
+        self.load_earlier_model(state, step, earlier.num_train_frames)
         if BUFFER_STATE in state and self.replay_buffer.enabled:
             self.replay_buffer.set_extra_state(state[BUFFER_STATE])
         extra = state["_extra_state"]
-        self.accuracy = AccuracyMatrix(**{**extra["accuracy"], "num_tasks": self.known_tasks})
+        self.accuracy = AccuracyMatrix(**extra["accuracy"])
+        self.accuracy.num_tasks = self.known_tasks
         self.accuracy.finished, self.accuracy.status = False, "training"
-        self.budget.load_state({**extra["budget"], "iterations_done": 0, "seconds_done": 0.0})
+        self.budget.load_state(extra["budget"])
         self.freeze_oracle()
         self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
         self.datamanager.open_released_task()
         self.open_task(self.task.current)
+
+    def load_earlier_model(self, state: Dict[str, Any], step: int, earlier_rows: int) -> None:
+        """Load the model of an earlier session's checkpoint (`state`, at `step`) whose first `earlier_rows` per-frame
+        rows are this run's earlier training frames'; a model of another size is a one-line error naming how."""
+        model_state = {key[len(MODEL_PREFIX) :]: value for key, value in state.items() if key.startswith(MODEL_PREFIX)}
+        current = self.model.state_dict()
+        rows = self.model.per_frame_state_keys() if isinstance(self.model, ContinualNGPModel) else []
+        difference = size_difference(model_state, current, rows)
+        if difference is not None:
+            earlier = self.datamanager.earlier
+            saved = earlier.model_options if earlier is not None else {}
+            options = options_differing(saved, model_options(self.config.model))
+            raise ContinualConfigError(
+                f"its model differs in size from this run's ({'; '.join(options) or difference}): continue with the "
+                "model options it was trained with"
+            )
+        self.model.update_to_step(step)
+        self.model.load_state_dict(with_earlier_rows(model_state, current, rows, earlier_rows))
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.datamanager.check_resumable(state["schedule"])

@@ -164,6 +164,16 @@ class ContinualNGPModel(NerfactoModel):
             *(self.camera_optimizer.parameters()),
         ]
 
+    def per_frame_state_keys(self) -> List[str]:
+        """State-dict keys of the tensors that hold one row per training frame (codes, colour transforms, pose
+        corrections and their code_of_frame lookups): a model of a longer trajectory holds more rows."""
+        per_frame = {id(parameter) for parameter in self._per_frame_parameters()}
+        return [
+            key
+            for key, value in self.state_dict(keep_vars=True).items()
+            if id(value) in per_frame or key.endswith("code_of_frame")
+        ]
+
     @property
     def fits_color_transforms(self) -> bool:
         """Whether a task's colour transforms start fitted to its frames (--pipeline.model.color-transform-start)."""

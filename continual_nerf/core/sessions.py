@@ -104,6 +104,11 @@ class SessionRecord:
     def num_train_frames(self) -> int:
         return int(sum(len(frames) for frames in self.train_frames))
 
+    def train_frames_of_sessions(self, count: int) -> int:
+        """Training frames of the first `count` sessions (rows of their per-frame tables)."""
+        tasks = int(sum(self.tasks_per_session[:count]))
+        return int(sum(len(frames) for frames in self.train_frames[:tasks]))
+
     @property
     def num_test_frames(self) -> int:
         return int(sum(len(frames) for frames in self.test_frames))
@@ -422,28 +427,19 @@ def _joined_optional(
     return torch.cat([first.to(second.dtype), second])
 
 
-def per_frame_rows(state: Mapping[str, Any], current: Mapping[str, Any], earlier_rows: int) -> List[str]:
-    """Keys of `state` (a checkpoint's model) whose tensors hold one row per earlier training frame where the model
-    being loaded into (`current`) holds one per frame of the joined trajectory."""
-    return [
-        key
-        for key, value in state.items()
-        if isinstance(value, Tensor)
-        and isinstance(current.get(key), Tensor)
-        and value.dim() > 0
-        and value.shape[0] == earlier_rows
-        and current[key].shape[0] > earlier_rows
-        and value.shape[1:] == current[key].shape[1:]
-    ]
-
-
-def with_earlier_rows(state: Mapping[str, Any], current: Mapping[str, Any], rows: Sequence[str]) -> Dict[str, Any]:
-    """`state` with every per-frame tensor in `rows` grown to the current model's frames: the earlier frames' rows as
-    saved, the later frames' as the current model has them (codes and corrections at their start)."""
+def with_earlier_rows(
+    state: Mapping[str, Any], current: Mapping[str, Any], rows: Sequence[str], earlier_rows: int
+) -> Dict[str, Any]:
+    """`state` (a checkpoint's model) with every per-frame tensor in `rows` as the current model holds it: the first
+    `earlier_rows` rows (the earlier sessions' training frames) as saved, the later frames' as the current model has
+    them (codes and corrections at their start)."""
     grown = dict(state)
     for key in rows:
+        saved = state[key]
+        if saved.shape[0] < earlier_rows:
+            raise CheckpointError(f"{key} holds {saved.shape[0]} frames' rows, the earlier sessions {earlier_rows}")
         value = current[key].detach().clone()
-        value[: state[key].shape[0]] = state[key].to(value.dtype)
+        value[:earlier_rows] = saved[:earlier_rows].to(value.dtype)
         grown[key] = value
     return grown
 

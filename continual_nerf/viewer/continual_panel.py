@@ -81,9 +81,9 @@ class TaskPictures:
     def __init__(self, server: viser.ViserServer) -> None:
         self.legend = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
         self.accuracy = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
-        self._drawn: Tuple[int, Optional[List[List[float]]]] = (0, None)
+        self._drawn: Tuple[int, Optional[List[List[Optional[float]]]]] = (0, None)
 
-    def show(self, num_tasks: int, psnr_rows: List[List[float]]) -> None:
+    def show(self, num_tasks: int, psnr_rows: List[List[Optional[float]]]) -> None:
         drawn_tasks, drawn_rows = self._drawn
         if num_tasks != drawn_tasks:
             self.legend.content = legend_markdown(num_tasks)

@@ -64,7 +64,7 @@ def value_format(num_tasks: int) -> Optional[str]:
     return "{:.0f}" if num_tasks <= 9 else None
 
 
-def accuracy_figure(psnr: Sequence[Sequence[float]], num_tasks: int) -> Figure:
+def accuracy_figure(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int) -> Figure:
     """The accuracy matrix so far as a heat map: test PSNR of task j (columns) after training task i (rows), the
     tasks' numbers on top and the colour bar, in dB, below."""
     figure = Figure(figsize=(DISPLAY_WIDTH / CSS_DPI, 1.3 + 0.3 * max(len(psnr), 2)), dpi=CSS_DPI, layout="constrained")
@@ -81,6 +81,6 @@ def accuracy_figure(psnr: Sequence[Sequence[float]], num_tasks: int) -> Figure:
     return figure
 
 
-def accuracy_markdown(psnr: Sequence[Sequence[float]], num_tasks: int) -> str:
+def accuracy_markdown(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int) -> str:
     """The accuracy picture (`accuracy_figure`) as a markdown image."""
     return png_markdown(accuracy_figure(psnr, num_tasks), ACCURACY_ALT)
