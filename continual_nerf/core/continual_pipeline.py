@@ -179,7 +179,8 @@ class ContinualPipeline(VanillaPipeline):
         """What the open task's frames show where the oracle renders otherwise (the change guard); None: not built."""
         self.guard_count = GuardCount()
         self._said_unavailable = False
-        self._open_frame_parameters(start=True)
+        # the first task has no earlier one to start from; a continued run's first task starts once its model is loaded
+        self._open_frame_parameters(start=False)
 
     @property
     def replays(self) -> bool:
