@@ -5,7 +5,10 @@ transforms as they were, one world frame, one-line refusals."""
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import shutil
+import signal
+import subprocess
 from pathlib import Path
 from typing import Dict, Tuple
 
@@ -14,16 +17,21 @@ import pytest
 import torch
 import yaml
 from helpers import (
+    SUBPROCESS_ENV,
     arc_poses,
     demo_parser,
     masked_capture,
+    ns_train_command,
     numbered_frames,
     original_poses,
+    run_ns_train,
+    signal_when_saved,
     tiny_config,
     train,
     write_transforms,
 )
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_pipeline import CONTINUE_OPTION
@@ -273,6 +281,47 @@ def test_the_capture_it_already_trains_or_no_run_to_continue_is_refused_with_one
     assert str(exit_info.value.code).endswith(
         "--pipeline.continue-with-new-capture needs the run to continue: --load-dir <run>/nerfstudio_models"
     )
+
+
+@pytest.mark.slow
+def test_a_continued_run_interrupted_and_resumed_ends_as_the_uninterrupted_continuation(tmp_path):
+    outputs = tmp_path / "outputs"
+    first = session(outputs, tmp_path / "first", "first", first=True)
+    first.pipeline.datamanager.iterations_per_task = 8  # steps 0..15
+    train(first)
+    shutil.rmtree(tmp_path / "first")
+    options = [
+        *("--pipeline.datamanager.num-tasks", "2", "--pipeline.datamanager.iterations-per-task", "8"),
+        *("--steps-per-save", "20"),  # the continuation's task 3 spans steps 16..23
+        *("--load-dir", str(first.get_checkpoint_dir()), CONTINUE_OPTION, "True"),
+    ]
+    size = ("--num-frames", str(NUM_FRAMES), "--width", "24", "--height", "18")
+    demo = ["continual-demo", "--data", str(tmp_path / "second"), *size, "--start-instant", str(NUM_FRAMES // 2)]
+    command = ns_train_command(outputs, "interrupted", options, demo)
+    folder = outputs / "unnamed" / "continual-ngp" / "interrupted"
+    with (tmp_path / "interrupted.log").open("w+") as log:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log, env=SUBPROCESS_ENV)
+        signal_when_saved(process, folder / "nerfstudio_models" / f"step-{20:09d}.ckpt", signal.SIGINT)
+        assert process.wait(timeout=600) == 130
+        log.seek(0)
+        stderr = log.read()
+    resume = stderr.strip().splitlines()[-1].split(" saved; resume with: ")[1]
+    assert CONTINUE_OPTION not in resume and f"--load-dir {folder / 'nerfstudio_models'}" in resume
+    resumed = run_ns_train([command[0], *shlex.split(resume)[1:]])
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    after_resume = AccuracyMatrix.read(folder / ACCURACY_MATRIX_FILENAME)
+
+    config = yaml.load((folder / "config.yml").read_text(), Loader=yaml.Loader)
+    config.timestamp = "uninterrupted"  # from the first session's checkpoint, as the interrupted run started
+    config.load_dir, config.pipeline.continue_with_new_capture = first.get_checkpoint_dir(), True
+    config.save_config()  # as ns-train does before its training loop
+    train_loop(local_rank=0, world_size=1, config=config)
+    uninterrupted = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+    assert after_resume.status == "finished" and after_resume.steps == uninterrupted.steps == [7, 15, 23, 31]
+    assert [row[:2] for row in after_resume.psnr[2:]] == [[None, None]] * 2
+    pairs = zip(after_resume.psnr[2:], uninterrupted.psnr[2:])
+    differences = [abs(a - b) for ra, rb in pairs for a, b in zip(ra[2:], rb[2:])]
+    assert max(differences) <= 0.3, f"resumed {after_resume.psnr} vs uninterrupted {uninterrupted.psnr}"
 
 
 def test_the_resume_command_of_a_continued_run_leaves_the_new_session_option_out():
