@@ -5,10 +5,12 @@ transforms as they were, one world frame, one-line refusals."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import shlex
 import shutil
 import signal
 import subprocess
+import sys
 from pathlib import Path
 from typing import Dict, Tuple
 
@@ -33,15 +35,20 @@ from helpers import (
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.scripts.train import train_loop
 
+from continual_nerf.bench.browser import free_port
+from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_pipeline import CONTINUE_OPTION
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.ngp_model import ContinualNGPModel
 from continual_nerf.core.sessions import SESSIONS_FILENAME, SessionRecord
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
+from continual_nerf.export_poses import ExportPoses
 from continual_nerf.interrupts import resume_command
 from continual_nerf.method_configs import CONTINUAL_NGP_INCRE
 from continual_nerf.recipes import set_up_like_ns_train
+from continual_nerf.viewer.run_viewer import ContinualRunViewer
+from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
 NUM_FRAMES = 16
 """Instants of the demo room the tests cut into two sessions of 8."""
@@ -102,6 +109,47 @@ def test_a_finished_run_learns_a_later_capture_with_the_earlier_capture_removed(
     assert saved.pipeline.datamanager.earlier_sessions == second.get_base_dir() / SESSIONS_FILENAME
     record = SessionRecord.load(second.get_base_dir() / SESSIONS_FILENAME)
     assert (record.num_tasks, record.tasks_per_session, record.next_step) == (2, [2], 6)
+
+
+@pytest.mark.slow
+def test_ns_eval_ns_render_the_viewer_and_export_poses_read_a_continued_run(two_sessions, tmp_path):
+    first, second, _ = two_sessions
+    config = second.get_base_dir() / "config.yml"
+    bin_dir = Path(sys.executable).parent
+    evaluated = subprocess.run(
+        [str(bin_dir / "ns-eval"), "--load-config", str(config), "--output-path", str(tmp_path / "eval.json")],
+        check=False, capture_output=True, text=True, timeout=300, env=SUBPROCESS_ENV,
+    )  # fmt: skip
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
+    assert json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"] > 5.0, "over the test images still there"
+    render = [str(bin_dir / "ns-render"), "dataset", "--load-config", str(config), "--output-path",
+              str(tmp_path / "renders"), "--split", "train", "--rendered-output-names", "rgb"]  # fmt: skip
+    rendered = subprocess.run(render, check=False, capture_output=True, text=True, timeout=300, env=SUBPROCESS_ENV)
+    assert rendered.returncode == 0, rendered.stderr[-2000:]
+    renders = [path for path in (tmp_path / "renders").rglob("*") if path.suffix in (".jpg", ".png")]
+    assert len(renders) == 6 + 6, "both sessions' training frames"
+    assert "gone (an earlier session's image)" in rendered.stdout
+
+    transforms = ExportPoses(load_config=config, output_dir=tmp_path / "exported")
+    transforms.main()
+    frames = json.loads((tmp_path / "exported" / "transforms.json").read_text())["frames"]
+    room = demo_parser(num_frames=NUM_FRAMES).setup()
+    truth = room.returned_poses(room.capture())
+    assert np.allclose([frame["transform_matrix"][:3] for frame in frames], truth, atol=1e-4), (
+        "every session's frames, in the first session's world"
+    )
+
+    travel = ContinualRunViewer(config, viewer=ContinualViewerConfig(websocket_port=free_port())).start()
+    try:
+        assert travel.slider.max == 4 and sorted(travel.checkpoints) == [0, 1, 2, 3], "the slider spans both sessions"
+        travel.show_task(0)  # the first session's checkpoint, in its own run folder
+        end_of_task_1 = read_checkpoint(travel.checkpoints[0])["pipeline"]
+        for name, value in travel.pipeline.model.state_dict().items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, end_of_task_1[f"_model.{name}"]), name
+        assert travel.checkpoints[0].parent == first.get_checkpoint_dir().resolve()
+    finally:
+        travel.viewer.viser_server.stop()
 
 
 @pytest.mark.slow
