@@ -26,8 +26,10 @@ from helpers import (
     ns_train_command,
     numbered_frames,
     original_poses,
+    replayed,
     run_ns_train,
     signal_when_saved,
+    stream_config,
     tiny_config,
     train,
     write_transforms,
@@ -47,6 +49,7 @@ from continual_nerf.export_poses import ExportPoses
 from continual_nerf.interrupts import resume_command
 from continual_nerf.method_configs import CONTINUAL_NGP_INCRE
 from continual_nerf.recipes import set_up_like_ns_train
+from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, replay
 from continual_nerf.viewer.run_viewer import ContinualRunViewer
 from continual_nerf.viewer.viewer_config import ContinualViewerConfig
 
@@ -370,6 +373,25 @@ def test_a_continued_run_interrupted_and_resumed_ends_as_the_uninterrupted_conti
     pairs = zip(after_resume.psnr[2:], uninterrupted.psnr[2:])
     differences = [abs(a - b) for ra, rb in pairs for a, b in zip(ra[2:], rb[2:])]
     assert max(differences) <= 0.3, f"resumed {after_resume.psnr} vs uninterrupted {uninterrupted.psnr}"
+
+
+@pytest.mark.slow
+def test_the_stream_goes_on_learning_a_new_capture_folder(tmp_path):
+    first = stream_config(tmp_path / "outputs", replayed(tmp_path / "first", end_marker=True), "wait", 6, 3)
+    first.timestamp = "first"
+    train(first)
+    shutil.rmtree(tmp_path / "first")
+    later = dataclasses.replace(demo_parser(num_frames=12), start_instant=6)
+    capture = tmp_path / "later" / "capture"
+    replay(ReplayCaptureConfig(output=capture, fps=0, end_marker=True, dataparser=later))
+    second = continued(stream_config(tmp_path / "outputs", capture, "wait", 6, 3), first)
+    second.timestamp = "second"
+    trainer = train(second)
+    matrix = trainer.pipeline.accuracy
+    # the stream's task may train on until its end marker is read
+    assert matrix.finished and matrix.num_tasks == 2 and matrix.steps[0] == 2 and matrix.steps[1] >= 5
+    assert matrix.psnr[1][0] is None and matrix.psnr[1][1] is not None, "the first capture folder is gone"
+    assert trainer.pipeline.datamanager.earlier_tasks == 1
 
 
 def test_the_resume_command_of_a_continued_run_leaves_the_new_session_option_out():
