@@ -200,3 +200,14 @@ def test_start_and_end_instants_cut_a_capture_into_sessions():
     assert torch.equal(joined, whole.cameras.camera_to_worlds)
     with pytest.raises(ContinualConfigError, match="--start-instant 5 --end-instant 5"):
         demo(num_frames=8, start_instant=5, end_instant=5).setup()
+
+
+def test_two_laps_see_the_scene_as_it_was_then_as_it_changed():
+    both = demo(num_frames=8, laps=2, change="object-moved").setup().get_dataparser_outputs("train")
+    before = demo(num_frames=8).setup().get_dataparser_outputs("train")
+    after = demo(num_frames=8, change="object-moved").setup().get_dataparser_outputs("train")
+    assert len(both.image_filenames) == 16
+    assert torch.equal(both.cameras.camera_to_worlds, torch.cat([before.cameras.camera_to_worlds] * 2))
+    for lap, state in enumerate((before, after)):
+        for index, path in enumerate(state.image_filenames):
+            assert np.array_equal(pixels(both.image_filenames[8 * lap + index]), pixels(path))

@@ -76,6 +76,9 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """The scene as a later session finds it: object-moved (a crate, in the street a parked car, near the middle of
     the path moved along the wall the camera looks at) or wall-repainted (a stretch of that wall, or facade, painted
     over); none: as it was."""
+    laps: int = 1
+    """Times the camera walks the path (the vehicle drives the street), each lap's instants after the last's; with
+    --change the last lap finds the scene changed: a first and a later session in one capture (the joint bound's)."""
     start_instant: int = 0
     """First capture instant returned: a capture cut into sessions (instants before it belong to an earlier one)."""
     end_instant: Optional[int] = None
@@ -83,7 +86,7 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
 
     def validate(self) -> None:
         super().validate()
-        for name in ("num_frames", "width", "height", "exposure_segments"):
+        for name in ("num_frames", "width", "height", "exposure_segments", "laps"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be at least 1, got {value}")
@@ -93,11 +96,12 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
             value = getattr(self, name)
             if not 0 <= value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be in [0, 1), got {value}")
-        end = self.frames if self.end_instant is None else self.end_instant
-        if not 0 <= self.start_instant < end <= self.frames:
+        instants = self.frames * self.laps
+        end = instants if self.end_instant is None else self.end_instant
+        if not 0 <= self.start_instant < end <= instants:
             raise ContinualConfigError(
                 f"continual-demo --start-instant {self.start_instant} --end-instant {self.end_instant}: must cut a part "
-                f"of the path's {self.frames} instants (0 <= start < end <= {self.frames})"
+                f"of the capture's {instants} instants (0 <= start < end <= {instants})"
             )
         for name in ("pose_noise_degrees", "pose_noise_translation"):
             value = getattr(self, name)
@@ -128,6 +132,16 @@ class DemoCapture:
     """(N,) capture instant of each image (the street's three cameras share one)."""
     cameras: np.ndarray
     """(N,) camera of each image: 0 in the room; 0, 1, 2 (front, front-left, front-right) in the street."""
+    last_lap_scene: Optional[demo_scene.Scene] = None
+    """The scene the last lap sees when it differs from the first laps' (--change with --laps); None: `scene`."""
+    last_lap_start: int = 0
+    """The first image of the last lap."""
+
+    def scene_of(self, image: int) -> demo_scene.Scene:
+        """The scene as image `image` sees it."""
+        if self.last_lap_scene is not None and image >= self.last_lap_start:
+            return self.last_lap_scene
+        return self.scene
 
 
 class ContinualDemoDataParser(DataParser):
@@ -138,13 +152,34 @@ class ContinualDemoDataParser(DataParser):
     def _scene_folder(self) -> Path:
         c = self.config
         changed = "" if c.change == "none" else f"_{c.change}"
-        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}{changed}"
+        laps = "" if c.laps == 1 else f"_laps{c.laps}"
+        return c.data / (
+            f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}{changed}{laps}"
+        )
 
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
 
     def capture(self) -> DemoCapture:
-        """The scene and its images' exact poses, instants and cameras."""
+        """The scene and its images' exact poses, instants and cameras: --laps times the path, the last lap seeing the
+        scene as --change leaves it."""
+        lap = self._lap()
+        changed = self._changed(lap.scene)
+        laps = self.config.laps
+        if laps == 1:
+            return dataclasses.replace(lap, scene=changed)
+        per_lap = int(lap.instants.max()) + 1
+        return DemoCapture(
+            lap.scene,
+            np.concatenate([lap.poses] * laps),
+            np.concatenate([lap.instants + k * per_lap for k in range(laps)]),
+            np.tile(lap.cameras, laps),
+            last_lap_scene=changed,
+            last_lap_start=(laps - 1) * len(lap.poses),
+        )
+
+    def _lap(self) -> DemoCapture:
+        """One walk of the path through the scene as it was."""
         rng = np.random.default_rng(self.config.seed)
         count, scene_name = self.config.frames, self.config.scene
         if scene_name in RIGS:
@@ -154,12 +189,12 @@ class ContinualDemoDataParser(DataParser):
                 demo_street.rig_path(count, rng) if length is None else demo_street.rig_path(count, rng, length)
             )
             cameras = np.tile(np.arange(len(demo_street.CAMERA_YAWS)), count)
-            return DemoCapture(self._changed(scene), poses, instants, cameras)
+            return DemoCapture(scene, poses, instants, cameras)
         num_rooms = demo_scene.ROOMS if scene_name == "rooms" else 1
         scene = demo_scene.rooms(rng) if scene_name == "rooms" else demo_scene.room(rng)
         frames = np.arange(count)
         path = demo_scene.camera_path(count, rng, num_rooms)
-        return DemoCapture(self._changed(scene), path, frames, np.zeros_like(frames))
+        return DemoCapture(scene, path, frames, np.zeros_like(frames))
 
     def _changed(self, scene: demo_scene.Scene) -> demo_scene.Scene:
         """The scene as --change leaves it (after the whole layout is drawn: nothing else moves)."""
@@ -173,7 +208,7 @@ class ContinualDemoDataParser(DataParser):
     def returned_frames(self, capture: DemoCapture) -> np.ndarray:
         """The frames of the instants --start-instant to --end-instant, in capture order."""
         c = self.config
-        end = c.frames if c.end_instant is None else c.end_instant
+        end = c.frames * c.laps if c.end_instant is None else c.end_instant
         return np.nonzero((capture.instants >= c.start_instant) & (capture.instants < end))[0]
 
     def _render_scene(self, folder: Path, capture: DemoCapture) -> None:
@@ -184,7 +219,7 @@ class ContinualDemoDataParser(DataParser):
         frames = []
         for i, c2w in enumerate(capture.poses):
             image = demo_scene.render_view(
-                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene
+                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene_of(i)
             )
             Image.fromarray(image).save(folder / "images" / f"frame_{i:05d}.png")
             frames.append(
