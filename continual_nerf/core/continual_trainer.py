@@ -106,7 +106,10 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
     def record_earlier_sessions(self, base_dir: Path) -> None:
         """A run that continues earlier sessions (a new capture, or resuming a continued run) writes their record from
         the checkpoint into its run folder, for its datamanager to read whenever the run is set up (ns-eval, ...)."""
-        path = self.checkpoint_to_load()
+        try:
+            path = self.checkpoint_to_load()
+        except CheckpointError:
+            return  # nothing to load: the trainer's set-up says so in one line
         if path is None:
             return
         state = read_checkpoint(path)
