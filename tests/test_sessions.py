@@ -169,6 +169,20 @@ def test_a_continued_run_is_continued_again_as_a_third_session(two_sessions, tmp
     assert trainer.pipeline.datamanager.sessions_record(6, {}).tasks_per_session == [2, 2, 2]
 
 
+@pytest.mark.slow
+def test_a_run_stopped_mid_task_goes_on_with_that_task_closed_and_measured(tmp_path):
+    first = session(tmp_path / "outputs", tmp_path / "first", "first", first=True)
+    first.max_num_iterations = 5  # task 2 (steps 3..5) stops after two of its steps
+    train(first)
+    stopped = AccuracyMatrix.read(first.get_base_dir() / ACCURACY_MATRIX_FILENAME)
+    assert len(stopped.psnr) == 1 and not stopped.finished
+    second = continued(session(tmp_path / "outputs", tmp_path / "second", "second", first=False), first)
+    matrix = train(second).pipeline.accuracy
+    assert [len(row) for row in matrix.psnr] == [1, 2, 3, 4] and matrix.finished
+    assert matrix.psnr[0] == stopped.psnr[0] and matrix.steps[1] == 4, "task 2 closed where the first run stopped"
+    assert all(value is not None for row in matrix.psnr for value in row), "the first capture is still there"
+
+
 def masked_session(run_dir: Path, capture: Path, timestamp: str) -> ContinualTrainerConfig:
     """A tiny run on a transforms.json capture with masks, learning appearance codes, colour transforms and pose
     corrections."""

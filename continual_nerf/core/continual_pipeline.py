@@ -426,32 +426,40 @@ class ContinualPipeline(VanillaPipeline):
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`. An earlier session's
         task none of whose test images can be read any more has no value (None: not available)."""
-        datamanager = self.datamanager
-        seen_frames = datamanager.seen_test_frames()
-        available = set(datamanager.eval_dataset.available_frames())
-        frames = torch.tensor([frame for frame in seen_frames.tolist() if frame in available], dtype=torch.long)
-        # the open task's test images are this capture's: at least those are there
-        self.eval()
-        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
-        self.train()
-        tasks = datamanager.test_task_of_frame()[frames]
-        seen = range(int(datamanager.test_task_of_frame()[seen_frames].max()) + 1)  # every task when training jointly
-        row_psnr = [_mean_or_none(psnr[tasks == j]) for j in seen]
-        row_ssim = [_mean_or_none(ssim[tasks == j]) for j in seen]
-        self._say_unavailable([j for j in seen if row_psnr[j] is None])
+        row_psnr, row_ssim, mean_psnr = self._measure_seen_tasks()
         self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
-        self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step)
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step)
         path = self.accuracy.write(output_dir)
         writer.put_dict(
             name="Continual PSNR per task",
             scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr) if v is not None},
             step=step,
         )
-        writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
+        writer.put_scalar(name="Continual mean PSNR", scalar=mean_psnr, step=step)
         CONSOLE.print(
             f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
-            f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB ({path})"
+            f"test PSNR per task {_format_row(row_psnr)}, mean {mean_psnr:.2f} dB ({path})"
         )
+
+    def _measure_seen_tasks(self) -> Tuple[List[Optional[float]], List[Optional[float]], float]:
+        """Test PSNR and SSIM of every task released so far (None where none of its test images is left), and the
+        mean PSNR over their test frames (NaN when none is left)."""
+        datamanager = self.datamanager
+        seen_frames = datamanager.seen_test_frames()
+        available = set(datamanager.eval_dataset.available_frames())
+        frames = torch.tensor([frame for frame in seen_frames.tolist() if frame in available], dtype=torch.long)
+        seen = range(int(datamanager.test_task_of_frame()[seen_frames].max()) + 1)  # every task when training jointly
+        if not len(frames):  # a stopped earlier session whose every test image is gone
+            self._say_unavailable(list(seen))
+            return [None] * len(seen), [None] * len(seen), float("nan")
+        self.eval()
+        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
+        self.train()
+        tasks = datamanager.test_task_of_frame()[frames]
+        row_psnr = [_mean_or_none(psnr[tasks == j]) for j in seen]
+        row_ssim = [_mean_or_none(ssim[tasks == j]) for j in seen]
+        self._say_unavailable([j for j in seen if row_psnr[j] is None])
+        return row_psnr, row_ssim, float(psnr.mean())
 
     def _say_unavailable(self, tasks: List[int]) -> None:
         """Say once that earlier sessions' tasks have no test image left to measure."""
@@ -519,10 +527,20 @@ class ContinualPipeline(VanillaPipeline):
         self.accuracy.num_tasks = self.known_tasks
         self.accuracy.finished, self.accuracy.status = False, "training"
         self.budget.load_state(extra["budget"])
+        self._measure_stopped_task(step)
         self.freeze_oracle()
         self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
         self.datamanager.open_released_task()
         self.open_task(self.task.current)
+
+    def _measure_stopped_task(self, step: int) -> None:
+        """A run stopped in the middle of a task has no row for it: measured now, as the task closes."""
+        earlier_tasks = self.datamanager.earlier_tasks
+        if len(self.accuracy.psnr) >= earlier_tasks:
+            return
+        self.task.current = self.datamanager.released_task = earlier_tasks - 1
+        row_psnr, row_ssim, mean_psnr = self._measure_seen_tasks()
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step)
 
     def load_earlier_model(self, state: Dict[str, Any], step: int, earlier_rows: int) -> None:
         """Load the model of an earlier session's checkpoint (`state`, at `step`) whose first `earlier_rows` per-frame
