@@ -338,7 +338,11 @@ def test_the_capture_it_already_trains_or_no_run_to_continue_is_refused_with_one
     )
     with pytest.raises(SystemExit) as exit_info:
         set_up(same)
-    assert "already trains on" in str(exit_info.value.code)
+    assert "its last session was trained on" in str(exit_info.value.code)
+    into_its_folder = continued(transforms_run(tmp_path / "outputs", tmp_path / "unused", "first"), first)
+    into_its_folder.output_dir = first.output_dir
+    with pytest.raises(SystemExit, match="already holds a run"):
+        into_its_folder.save_config()
     alone = transforms_run(tmp_path / "outputs", Path(first.pipeline.datamanager.dataparser.data), "alone")
     alone.pipeline.continue_with_new_capture = True
     with pytest.raises(SystemExit) as exit_info:

@@ -350,7 +350,7 @@ class ContinualPipeline(VanillaPipeline):
         return TaskDecision.LAST_TASK_DONE if self.is_last_task else TaskDecision.NEXT_TASK
 
     def before_task_switch(self) -> None:
-        """Runs at the end of every task but the last, while its pixels are still readable (e.g. EWC's Fisher)."""
+        """Runs at the end of every task, the last included, while its pixels are still readable (e.g. EWC's Fisher)."""
 
     def close_task(self) -> None:
         """What the open task leaves while its pixels are readable: the baseline's estimates (EWC's Fisher), the replay

@@ -146,7 +146,9 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
                 CONSOLE.print(
                     f"{base_dir}: process {previous}, which held it, is no longer running", markup=False, soft_wrap=True
                 )
-            if self._holds_another_run(base_dir, source):
+            # a later session is a run of its own: it never writes into the folder of the run it continues
+            continues_itself = None if self.pipeline.continue_with_new_capture else source
+            if self._holds_another_run(base_dir, continues_itself):
                 release_run_folder(base_dir)
                 raise ContinualConfigError(
                     f"{base_dir} already holds a run; choose another --timestamp or --experiment-name, or continue "
@@ -368,8 +370,8 @@ class ContinualTrainer(DeferredPauseTrainer):
         assert record is not None, "record_earlier_sessions read it"
         if same_capture(record, datamanager.train_dataparser_outputs.image_filenames[record.num_frames :]):
             raise CheckpointError(
-                f"{path}: already trains on {datamanager.capture_name()}; resume it without "
-                "--pipeline.continue-with-new-capture, or give the later capture"
+                f"{path}: its last session was trained on {datamanager.capture_name()}: a later session needs a later "
+                "capture (to resume an unfinished run, leave --pipeline.continue-with-new-capture out)"
             )
         try:
             pipeline.continue_session(state["pipeline"], state["step"])
