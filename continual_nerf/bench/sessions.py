@@ -27,7 +27,7 @@ import shutil
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -92,12 +92,14 @@ class Run:
     """The name its table row gives it."""
     sessions: Tuple[Session, ...]
     folder: Path
+    data: Path
+    """Where its sessions' copies of the demo capture are rendered (each deleted before the next session)."""
 
     def session_dir(self, index: int) -> Path:
         return self.folder / f"session{index + 1}"
 
     def data_dir(self, index: int) -> Path:
-        return self.folder / f"data{index + 1}"
+        return self.data / f"session{index + 1}"
 
     @property
     def arguments(self) -> List[Any]:
@@ -113,7 +115,7 @@ class SessionsBenchmark(DemoBenchmark):
     """Built-in scenes to measure on (continual-demo --scene)."""
     iterations_per_task: int = 240
     """Training iterations of every task (the 5-task runs have 5 x this)."""
-    experiments: Tuple[str, ...] = ("split", "changed")
+    experiments: Tuple[Literal["split", "changed"], ...] = ("split", "changed")
     """(a) split: two sessions against one run; (b) changed: a later session after a change."""
     changes: Tuple[SceneChange, ...] = ("object-moved",)
     """What the later session finds changed in (b) (continual-demo --change)."""
@@ -178,8 +180,8 @@ class SessionsBenchmark(DemoBenchmark):
         ]
 
     def run(self, scene: str, experiment: str, name: str, *sessions: Session) -> Run:
-        folder = self.output_dir / "runs" / scene / experiment / folder_name(name)
-        return Run(scene, experiment, name, tuple(sessions), folder)
+        where = Path(scene) / experiment / folder_name(name)
+        return Run(scene, experiment, name, tuple(sessions), self.output_dir / "runs" / where, self.data / where)
 
     def session_config(self, run: Run, index: int) -> ContinualTrainerConfig:
         """Session `index` of `run` as ns-train would train it, on its own copy of the demo capture, continuing the
@@ -209,7 +211,7 @@ class SessionsBenchmark(DemoBenchmark):
 
     def measure(self) -> Dict[str, Any]:
         """Every run's measures, trained where not finished before, grouped by scene and experiment."""
-        check_names("experiments", self.experiments, ("split", "changed"))
+        check_names("changes", self.changes, ("object-moved", "wall-repainted"))
         runs = []
         for scene in self.scenes:
             if "split" in self.experiments:
@@ -251,7 +253,8 @@ class SessionsBenchmark(DemoBenchmark):
 def train_and_measure(run: Run, configs: Sequence[ContinualTrainerConfig]) -> None:
     """Train `run`'s sessions one after the other in this process (each session's images deleted before the next
     starts), then measure it and write its measures."""
-    shutil.rmtree(run.folder, ignore_errors=True)  # an unfinished run of an interrupted benchmark starts over
+    for folder in (run.folder, run.data):  # an unfinished run of an interrupted benchmark starts over
+        shutil.rmtree(folder, ignore_errors=True)
     seconds = []
     for index, config in enumerate(configs):
         CONSOLE.print(f"[bold]{run.scene}, {run.experiment}: training {run.name}, session {index + 1}")
