@@ -3,10 +3,13 @@ one before on its own part of the capture, and its tables against the targets.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
+import torch
+from helpers import DEMO_CACHE
 
 from continual_nerf.bench.sessions import (
     MEASURES_FILENAME,
@@ -15,6 +18,7 @@ from continual_nerf.bench.sessions import (
     markdown,
     read_measures,
     split_rows,
+    views_between_frames,
 )
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
@@ -51,7 +55,7 @@ def test_the_split_is_the_first_three_fifths_then_the_rest_each_on_its_own_copy(
 def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_sessions(tmp_path):
     runs = {run.name: run for run in bench(tmp_path).changed_runs("room", "wall-repainted")}
     assert set(runs) == {"continual-ngp", "continual-ngp, change guard off", "iNGP-Incre", "joint bound, new state",
-                         "joint bound, both walks"}  # fmt: skip
+                         "joint bound, new state, 2 tasks", "joint bound, both walks"}  # fmt: skip
     benchmark = bench(tmp_path)
     first, later = (benchmark.session_config(runs["continual-ngp"], index) for index in range(2))
     assert (demo_of(first).laps, demo_of(first).change, demo_of(first).end_instant) == (2, "wall-repainted", 20)
@@ -62,6 +66,7 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     new_state = benchmark.session_config(runs["joint bound, new state"], 0)
     both = benchmark.session_config(runs["joint bound, both walks"], 0)
     assert new_state.pipeline.datamanager.joint and new_state.pipeline.datamanager.num_tasks == 5
+    assert benchmark.session_config(runs["joint bound, new state, 2 tasks"], 0).pipeline.datamanager.num_tasks == 2
     assert demo_of(new_state).start_instant == 20 and (demo_of(both).start_instant, demo_of(both).end_instant) == (
         0,
         None,
@@ -99,3 +104,21 @@ def test_the_tables_say_whether_each_target_is_met():
     assert rows[1][2:] == ["-2.00 MISSED", "23.00", "-2.30 MISSED"] and rows[2][2] == rows[2][4] == "n/a"
     text = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])])
     assert "within 0.2 dB of one run" in text and "| x |" in text
+
+
+@pytest.mark.parametrize("scene", ["room", "street"])
+def test_the_changed_scene_is_measured_between_the_frames_any_run_trains_on(scene):
+    demo = ContinualDemoDataParserConfig(data=DEMO_CACHE, scene=scene, num_frames=8, width=24, height=18,
+                                         change="object-moved", laps=2, start_instant=8)  # fmt: skip
+    capture = demo.setup().get_dataparser_outputs("train")
+    dense = dataclasses.replace(demo, num_frames=15, laps=1, start_instant=0).setup().get_dataparser_outputs("train")
+    cameras = len(capture.image_filenames) // 8
+    even = torch.cat([torch.arange(2 * i * cameras, (2 * i + 1) * cameras) for i in range(8)])
+    assert torch.allclose(dense.cameras.camera_to_worlds[even], capture.cameras.camera_to_worlds, atol=1e-6), (
+        "the even instants of the path sampled twice as densely are the capture's"
+    )
+    views = views_between_frames(demo)
+    assert len(views.images) == 4 * cameras, "instants 1, 5, 9 and 13 of 15"
+    assert any(bool(changed.any()) for changed in views.changed) and all(
+        changed.float().mean() < 0.5 for changed in views.changed
+    )
