@@ -75,3 +75,13 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
     assert bool(view.changed[columns >= 8].logical_not().all()), "the rest renders as the frames show it"
     assert torch.equal(view.changed, torch.from_numpy(expected.reshape(-1))), "the left third, where the paint differs"
     assert torch.equal(view.distances, torch.full_like(view.distances, 2.0))
+
+
+def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_not_seen():
+    view = one_camera_view()
+    # from beside the camera, through (-1, 0, -4) (a changed cell, before its surface), to an end no cell sees
+    origin, end = torch.tensor([[-3.0, 0.0, -4.0]]), torch.tensor([[1.0, 0.0, -4.0]])
+    direction = (end - origin) / (end - origin).norm()
+    assert not view.observed_changed(end).item()
+    assert view.crosses_change(origin, direction, (end - origin).norm(dim=-1)).item()
+    assert not view.crosses_change(end, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0])).item()

@@ -7,8 +7,9 @@ colour differs from the frame's pixel there by more than a threshold, and well m
 do, counts as changed. A replayed ray ends where the
 oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed cell and is not hidden there
 behind the surface the oracle renders in that cell, the frame observes that point differently than the earlier tasks
-did, and the ray is skipped. Points no open-task frame sees keep their replay: what the new images do not show keeps
-what the earlier session taught.
+did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
+in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
+their replay: what the new images do not show keeps what the earlier session taught.
 
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
@@ -30,6 +31,9 @@ MAX_CELLS = 1024
 CONTRAST = 3.0
 """A changed cell also differs by this many times the open task's median difference: where the oracle renders every
 cell about as badly (a model still learning, ground no earlier task saw), nothing stands out as changed."""
+SAMPLES_ALONG_RAY = 8
+"""Points a replayed ray is checked at, evenly up to where it ends: a ray whose end no open-task frame sees changed may
+still cross space they see changed (an object moved into what was empty)."""
 VISIBILITY_TOLERANCE = 0.1
 """A point counts as seen in a cell when it is no farther than the cell's surface by this share of its distance."""
 SEED = 0
@@ -64,6 +68,14 @@ class OpenTaskView:
     """(C,) distance from the camera to the surface the oracle renders in each cell."""
     changed: Tensor
     """(C,) whether the cell's pixel differs from the oracle's colour by more than the threshold."""
+
+    def crosses_change(self, origins: Tensor, directions: Tensor, distances: Tensor) -> Tensor:
+        """(N,) whether rays (origins and directions (N, 3)) cross, before the surface they end at `distances` (N,)
+        away, a point an open-task frame sees changed (`observed_changed` at SAMPLES_ALONG_RAY points along each)."""
+        fractions = torch.arange(1, SAMPLES_ALONG_RAY + 1, dtype=distances.dtype) / SAMPLES_ALONG_RAY
+        along = distances[:, None] * fractions[None]
+        points = origins[:, None] + directions[:, None] * along[..., None]
+        return self.observed_changed(points.reshape(-1, 3)).view(-1, SAMPLES_ALONG_RAY).any(dim=1)
 
     def observed_changed(self, points: Tensor) -> Tensor:
         """(N,) whether an open-task frame sees each of `points` (N, 3) in a changed cell, not hidden behind the

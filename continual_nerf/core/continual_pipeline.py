@@ -245,9 +245,10 @@ class ContinualPipeline(VanillaPipeline):
         if distance is None:
             return
         view = self._open_task_view()
-        points = (replayed.origins + replayed.directions * distance[:, None]).detach().float().cpu()
+        rays = (replayed.origins, replayed.directions, distance)
+        crossing = view.crosses_change(*(tensor.detach().float().cpu() for tensor in rays))
         skipped = torch.zeros_like(is_replay)
-        skipped[is_replay] = view.observed_changed(points).to(is_replay.device)
+        skipped[is_replay] = crossing.to(is_replay.device)
         batch[REPLAY_SKIPPED] = skipped
         self.guard_count.replayed += int(is_replay.sum())
         self.guard_count.skipped += int(skipped.sum())
