@@ -28,7 +28,6 @@ from nerfstudio.data.scene_box import SceneBox
 from torch import Tensor
 
 from continual_nerf.atomic_files import write_atomically
-from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.task_split import TaskSplit
 from continual_nerf.core.valid_pixels import ValidPixels
 from continual_nerf.errors import CheckpointError, ContinualConfigError, DatasetError
@@ -113,19 +112,10 @@ class SessionRecord:
     def num_test_frames(self) -> int:
         return int(sum(len(frames) for frames in self.test_frames))
 
-    def split(self) -> TaskSplit:
-        return TaskSplit(
-            train_frames=tuple(frames.numpy() for frames in self.train_frames),
-            test_frames=tuple(frames.numpy() for frames in self.test_frames),
-        )
-
     def session_of_task(self, task: int) -> int:
         """The session (0-based) task `task` belongs to (the one after the recorded ones for later tasks)."""
         ends = np.cumsum(self.tasks_per_session)
         return int(np.searchsorted(ends, task, side="right"))
-
-    def to_cameras(self) -> Cameras:
-        return Cameras(**self.cameras, distortion_params=self.distortion_params)  # type: ignore[arg-type]
 
     def first_sessions(self, count: int) -> "SessionRecord":
         """The record of the first `count` sessions."""
@@ -502,17 +492,6 @@ def checkpoint_record(state: Mapping[str, Any], path: Path) -> Optional[SessionR
         raise CheckpointError(f"{path}: its record of sessions is incomplete ({error})") from None
 
 
-def read_record(path: Path) -> Tuple[Dict[str, Any], SessionRecord]:
-    """A checkpoint and its sessions record; a checkpoint without one is a one-line error."""
-    state = read_checkpoint(path)
-    record = checkpoint_record(state, path)
-    if record is None:
-        raise CheckpointError(
-            f"{path}: written before runs recorded their sessions; it cannot be continued on a new capture"
-        )
-    return state, record
-
-
 def task_checkpoints(record: SessionRecord, state: Mapping[str, Any], path: Path) -> List[str]:
     """The record's checkpoint of every task's end, those of the checkpoint's own session's tasks found beside it (by
     the step of their accuracy-matrix rows)."""
@@ -542,13 +521,6 @@ def check_image_scale(record: SessionRecord, image_scale: float) -> None:
             f"--downscale-factor / --pipeline.datamanager.camera-res-scale-factor: the earlier sessions loaded their "
             f"images at {record.image_scale:g} of their size, this capture at {image_scale:g}; continue at the same scale"
         )
-
-
-def unreadable_tasks(record_tasks: int, test_frames: Sequence[np.ndarray], filenames: Sequence[Path]) -> List[int]:
-    """The earlier tasks (of the first `record_tasks`) none of whose test images can be read any more."""
-    return [
-        task for task in range(record_tasks) if not any(Path(filenames[frame]).is_file() for frame in test_frames[task])
-    ]
 
 
 def task_ranges(tasks: Sequence[int]) -> str:
