@@ -27,6 +27,9 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 
 CHECKPOINT_KEYS = ("step", "pipeline", "optimizers", "scalers")
 """Keys nerfstudio's Trainer needs to resume from a checkpoint."""
+WEIGHTS_ONLY = "weights_only"
+"""Key of a checkpoint that keeps the model's weights alone: a closed task's picture for ns-eval, ns-render and the
+run viewer's task slider, not a point to resume from."""
 
 
 def save_checkpoint_file(state: Dict[str, Any], path: Path) -> None:
@@ -83,6 +86,33 @@ def read_checkpoint(path: Path) -> Dict[str, Any]:
     if missing:
         raise CheckpointError(f"{path}: not a nerfstudio checkpoint (no {', '.join(missing)})")
     return state
+
+
+def weights_only(state: Dict[str, Any], dropped_prefix: str) -> Dict[str, Any]:
+    """`state` without what only resuming needs: the optimizers, schedulers, random states and the pipeline's keys that
+    start with `dropped_prefix` (the replay oracle, which equals the model at a task's end)."""
+    pipeline = {key: value for key, value in state["pipeline"].items() if not key.startswith(dropped_prefix)}
+    return {
+        "step": state["step"],
+        "method": state.get("method"),
+        "pipeline": pipeline,
+        "optimizers": {},
+        "schedulers": {},
+        "scalers": state["scalers"],
+        WEIGHTS_ONLY: True,
+    }
+
+
+def slim_checkpoint(path: Path, dropped_prefix: str) -> None:
+    """Rewrite the checkpoint at `path` as `weights_only` (atomically: a kill leaves the whole one)."""
+    save_checkpoint_file(weights_only(read_checkpoint(path), dropped_prefix), path)
+
+
+def check_resumable(state: Dict[str, Any], path: Path, latest: Optional[Path]) -> None:
+    """Refuse to resume from a weights-only checkpoint: its optimizers and random states are gone."""
+    if state.get(WEIGHTS_ONLY):
+        newest = f"; resume from the latest, {latest.name}" if latest is not None and latest != path else ""
+        raise CheckpointError(f"{path}: keeps the model's weights of a finished task only, not a run to resume{newest}")
 
 
 def check_method(state: Dict[str, Any], path: Path, method_name: Optional[str]) -> None:

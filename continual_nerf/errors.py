@@ -28,3 +28,8 @@ def first_line(error: BaseException) -> str:
     if len(lines) > 1 and lines[0].endswith(":"):
         return lines[1]
     return lines[0] if lines else type(error).__name__
+
+
+def plural(count: int, noun: str) -> str:
+    """`count` and `noun`, in the plural unless it is 1 (1 task, 3 tasks)."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"

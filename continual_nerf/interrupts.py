@@ -16,6 +16,8 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
+from nerfstudio.utils import comms
+
 EXIT_CODES: Dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143}
 """Exit status per signal, as a shell reports a process the signal ended."""
 
@@ -34,18 +36,24 @@ class Interrupts:
         self.on_signal: Callable[[], None] = lambda: None
         """Called when a signal is deferred (the trainer leaves its pause, so that the next iteration comes)."""
         self._previous: Dict[int, Any] = {}
+        self._installed = 0
+        """Installs not restored yet: the handlers stay until the outermost restore (ns-train's lasts the process)."""
 
     def install(self) -> None:
         if in_main_thread():  # only the main thread may set handlers; a run driven from another keeps the defaults
+            self._installed += 1
             for number in EXIT_CODES:
                 self._previous.setdefault(number, signal.signal(number, self._handle))
 
     def restore(self) -> None:
-        """The handlers from before install (from the main thread: another leaves them for it), nothing pending."""
-        if in_main_thread():
-            for number, handler in self._previous.items():
-                signal.signal(number, handler)
-            self._previous.clear()
+        """Nothing pending; the handlers from before the outermost install once each install is restored (from the
+        main thread: another leaves them for it)."""
+        if in_main_thread() and self._installed:
+            self._installed -= 1
+            if not self._installed:
+                for number, handler in self._previous.items():
+                    signal.signal(number, handler)
+                self._previous.clear()
         self.received, self.deferring = None, False
 
     def _handle(self, number: int, frame: Optional[FrameType]) -> None:
@@ -53,8 +61,9 @@ class Interrupts:
             self.received = number
             self.on_signal()
             return
-        name = signal.Signals(number).name
-        print(f"Stopped by {name}; the checkpoints written so far are kept", file=sys.stderr, flush=True)
+        if comms.is_main_process():  # every process of the run receives Ctrl-C; one says so
+            name = signal.Signals(number).name
+            print(f"Stopped by {name}; the checkpoints written so far are kept", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_CODES[number])
 
     def pending(self) -> bool:

@@ -13,6 +13,7 @@ from continual_nerf.baselines.nerf_model import ContinualNeRFModelConfig, Contin
 from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.ngp_model import COLOR_TRANSFORM_GROUP, ContinualNGPModelConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
@@ -78,6 +79,27 @@ continual_ngp_stream = MethodSpecification(
     config=_streaming(CONTINUAL_NGP),
     description="continual-ngp on a capture folder that is still being written (continual-stream): "
     "a task opens whenever its frames have arrived.",
+)
+
+
+def _depth(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
+    """`config` whose model trains on the capture's depth maps too, with depth-nerfacto's losses; every other option
+    stays the same."""
+    config = copy.deepcopy(config)
+    config.method_name = "continual-ngp-depth"
+    model = config.pipeline.model
+    options = {f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.init and f.name != "_target"}
+    config.pipeline.model = ContinualNGPDepthModelConfig(**options)
+    return config
+
+
+CONTINUAL_NGP_DEPTH = _depth(CONTINUAL_NGP)
+"""continual-ngp-depth: continual-ngp trained on depth maps too (as depth-nerfacto beside nerfacto)."""
+
+continual_ngp_depth = MethodSpecification(
+    config=CONTINUAL_NGP_DEPTH,
+    description="continual-ngp trained on RGB-D captures' depth maps too (ScanNet, TUM, transforms.json "
+    "depth_file_path, the demo), with depth-nerfacto's DS-NeRF or URF loss.",
 )
 
 

@@ -9,12 +9,18 @@ pyproject.toml pins nerfstudio==1.1.5 until a newer release has passed those tes
 from __future__ import annotations
 
 import asyncio
+import atexit
 import dataclasses
+import logging
+import re
 import signal
+import sys
 import threading
+import warnings
+import weakref
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
-from typing import Any, Callable, Dict, Iterator, List, Literal, Mapping, Optional
+from typing import Any, Callable, Dict, Iterator, List, Literal, Mapping, Optional, Tuple, Type
 from unittest import mock
 
 import msgspec
@@ -31,9 +37,10 @@ from nerfstudio.fields.nerfacto_field import NerfactoField
 from nerfstudio.model_components.ray_samplers import Sampler
 from nerfstudio.model_components.scene_colliders import SceneCollider
 from nerfstudio.models.base_model import Model
+from nerfstudio.models.depth_nerfacto import DepthNerfactoModel
 from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline
-from nerfstudio.utils import writer
+from nerfstudio.utils import profiler, writer
 from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 from torch import nn
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
@@ -69,6 +76,41 @@ def without_lpips() -> Iterator[None]:
         yield
 
 
+NERFSTUDIO_WARNINGS: Tuple[Tuple[Type[Warning], str, str], ...] = (
+    (FutureWarning, "`torch.jit.script` is deprecated", "torch.jit._script"),
+    (FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated", "nerfstudio.engine.trainer"),
+    (UserWarning, "Using a non-tuple sequence for multidimensional indexing", "nerfstudio.cameras.cameras"),
+    (UserWarning, "Converting a tensor with requires_grad=True to a scalar", "nerfstudio.utils.writer"),
+)
+"""Warnings nerfstudio 1.1.5's own code raises on this torch, every run (its deprecated calls, its camera indexing, its
+writer's loss logging): category, start of the message, module they are raised from (torch.jit._script: nerfstudio's
+@torch.jit.script functions)."""
+
+CPU_WARNINGS: Tuple[Tuple[Type[Warning], str, str], ...] = (
+    (UserWarning, "torch.cuda.amp.GradScaler is enabled, but CUDA is not available", "torch.cuda.amp.grad_scaler"),
+)
+"""On CPU: nerfstudio's Trainer builds a CUDA GradScaler for mixed precision, which it turns off there (and says so)."""
+
+
+def quiet_nerfstudio_warnings(on_cpu: bool) -> None:
+    """Keep the warnings nerfstudio's code raises (NERFSTUDIO_WARNINGS, CPU_WARNINGS on CPU) out of the terminal, each
+    matched by category, message and module: in this process, and in the processes it starts (as -W options, which
+    also cover the warnings they raise while importing nerfstudio). On CPU, torch's log line that no CUDA runtime is
+    found (when torch.compile loads its C++ tools) is left out too.
+
+    Depends on: the messages and modules listed, as nerfstudio 1.1.5 raises them on this torch.
+    """
+    for category, message, module in NERFSTUDIO_WARNINGS + (CPU_WARNINGS if on_cpu else ()):
+        warnings.filterwarnings("ignore", re.escape(message), category, re.escape(module) + r"\Z")
+        option = f"ignore:{message}:{category.__name__}:{module}"  # the same filter, as python -W takes it
+        if option not in sys.warnoptions:
+            sys.warnoptions.append(option)
+    if on_cpu:
+        logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
+
+
 def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:
     """The proposal sampler's counters, which decide whether its networks are updated at a step.
 
@@ -82,6 +124,20 @@ def proposal_sampler_state(model: NerfactoModel) -> Dict[str, int]:
 def set_proposal_sampler_state(model: NerfactoModel, state: Dict[str, int]) -> None:
     model.proposal_sampler._step = int(state["proposal_step"])
     model.proposal_sampler._steps_since_update = int(state["proposal_steps_since_update"])
+
+
+def depth_sigma(model: DepthNerfactoModel) -> float:
+    """The depth losses' sigma as it stands, which depth-nerfacto decays at every training batch (should_decay_sigma).
+
+    Depends on: `DepthNerfactoModel.depth_sigma`, a tensor attribute (not a buffer: no checkpoint keeps it) that
+    `_get_sigma` (private) replaces by the decayed value at each call. A checkpoint keeps it so that a resumed run
+    continues the schedule where the interrupted one stopped.
+    """
+    return float(model.depth_sigma)
+
+
+def set_depth_sigma(model: DepthNerfactoModel, sigma: float) -> None:
+    model.depth_sigma = torch.tensor([sigma])
 
 
 def sample_rays_as_in_training(model: nn.Module) -> None:
@@ -173,6 +229,27 @@ def set_resume_step(trainer: Trainer, start_step: int) -> None:
     trainer.config.max_num_iterations -= start_step
 
 
+def count_progress_to(last_step: int) -> None:
+    """Make the terminal's progress (% done) and ETA count towards `last_step`, the run's last step plus one.
+
+    Depends on: `writer.setup_local_writer` storing the Trainer's max_num_iterations as `GLOBAL_BUFFER["max_iter"]`,
+    which the local writer divides the step by for "% done" and `writer.put_time` subtracts the step from for the ETA;
+    after `set_resume_step` that count starts at the resumed step, not at 0.
+    """
+    writer.GLOBAL_BUFFER["max_iter"] = last_step
+
+
+def forget_empty_profile() -> None:
+    """Drop nerfstudio's profile of this process if it timed nothing (set-up ended before training did a step), so
+    that the process ends without an empty "Printing profiling stats" heading.
+
+    Depends on: `nerfstudio.utils.profiler.PROFILER`, the list `Trainer.setup` puts the run's Profiler in and whose
+    first one `flush_profiler` (called by ns-train's launch as it returns) prints, and `Profiler.profiler_dict`.
+    """
+    if profiler.PROFILER and not profiler.PROFILER[0].profiler_dict:
+        profiler.PROFILER.clear()
+
+
 def first_step(trainer: Trainer) -> int:
     """The step this process's training loop starts at: 0, or the one after the checkpoint a run resumed from.
 
@@ -254,10 +331,23 @@ def world_size_for_vanilla_pipeline(device: str, world_size: int) -> int:
 
 _nerfstudio_launch: List[Callable[..., None]] = []
 """nerfstudio's `launch`, once `launch_processes_here` has replaced it."""
+_when_a_process_fails: List[Callable[[], None]] = []
+"""What the launching process does when a process fails (the run folder then says the run failed)."""
+
+PEER_CLOSED = ("Connection closed by peer", "Connection reset by peer", "Broken pipe")
+"""gloo's words for a connection another process closed by ending (its collectives then fail in every process)."""
+
+PEER_LOST_EXIT = 75
+"""Exit status of a process whose collective failed because another process ended: the launcher names that one."""
 
 
-def launch_processes_here() -> None:
-    """Route `ns-train --machine.num-devices N` (N > 1) through `process_worker` and `launch_reporting_one_line`.
+class ProcessFailed(Exception):
+    """A process's one-line error, for the launching process to print (the process itself prints nothing)."""
+
+
+def launch_processes_here(when_a_process_fails: Callable[[], None]) -> None:
+    """Route `ns-train --machine.num-devices N` (N > 1) through `process_worker` and `launch_reporting_one_line`;
+    `when_a_process_fails` runs in the launching process when a process ends by an error or a signal.
 
     Depends on: `nerfstudio.scripts.train.main` calling `config.save_config()` right before `launch(...)` (with
     keyword arguments), and `main` and `launch` looking up `launch` and `_distributed_worker` among the module's
@@ -265,6 +355,7 @@ def launch_processes_here() -> None:
     """
     from nerfstudio.scripts import train
 
+    _when_a_process_fails[:] = [when_a_process_fails]
     if not _nerfstudio_launch:
         _nerfstudio_launch.append(train.launch)
         train.launch = launch_reporting_one_line
@@ -276,18 +367,51 @@ def launch_reporting_one_line(**launch_arguments: Any) -> None:
 
     Ctrl-C reaches the processes too, and they answer it (process 0 checkpoints the step and prints how to resume):
     the launching process ignores it meanwhile, as nerfstudio's launch would stop them at once, and then exits with
-    their code.
+    their code. torch's warning that it stops the other processes is left out: the one line says so.
     """
     answered_by_processes = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    spawn_log = logging.getLogger("torch.multiprocessing.spawn")
+    spawn_level = spawn_log.level
+    spawn_log.setLevel(logging.ERROR)
     try:
         _nerfstudio_launch[0](**launch_arguments)
     except (ProcessExitedException, ProcessRaisedException) as error:
         if isinstance(error, ProcessExitedException) and error.exit_code in EXIT_CODES.values():
             raise SystemExit(error.exit_code) from None
-        method = launch_arguments["config"].method_name
-        raise SystemExit(f"{method}: error: {first_line(error)}; the other processes were stopped") from None
+        for when_failed in _when_a_process_fails:
+            when_failed()
+        raise SystemExit(failed_process_line(error, launch_arguments["config"].method_name)) from None
     finally:
+        spawn_log.setLevel(spawn_level)
         signal.signal(signal.SIGINT, answered_by_processes)
+
+
+def failed_process_line(error: Exception, method: str) -> str:
+    """The one line that says why the processes stopped: the failed process's own line (ProcessFailed), else how it
+    ended.
+
+    Depends on: torch's mp.spawn putting a failed process's traceback (whose last line is "<exception type>: <its
+    message>") into ProcessRaisedException's message, and ProcessExitedException's first line saying how it ended.
+    """
+    if isinstance(error, ProcessRaisedException):
+        last_line = str(error).strip().splitlines()[-1]
+        reported = f"{ProcessFailed.__module__}.{ProcessFailed.__qualname__}: "
+        if last_line.startswith(reported):
+            return last_line[len(reported) :]
+        return f"{method}: error: process {error.error_index}: {last_line}; the other processes were stopped"
+    if isinstance(error, ProcessExitedException) and error.exit_code == PEER_LOST_EXIT:
+        how = f"process {error.error_index} lost its connection to another process"
+    else:
+        how = first_line(error)
+    return f"{method}: error: {how}; the other processes were stopped"
+
+
+def lost_a_peer(error: BaseException) -> bool:
+    """Whether `error` is a collective failing because another process ended: that process's end is the cause.
+
+    Depends on: gloo's messages for a closed connection (PEER_CLOSED), as torch raises them in a RuntimeError.
+    """
+    return isinstance(error, RuntimeError) and any(words in str(error) for words in PEER_CLOSED)
 
 
 def process_worker(
@@ -302,7 +426,9 @@ def process_worker(
     device_type: Literal["cpu", "cuda", "mps"] = "cuda",
 ) -> Any:
     """nerfstudio's `_distributed_worker` (process group, local group, `main_func`), which on CPU skips its CUDA
-    checks; an error ends the process with one line naming its rank.
+    checks; an error is handed to the launching process as one line naming its rank (ProcessFailed), and a process
+    that failed only because another one ended (its connection to it closed) exits quietly: the launcher names that
+    one.
 
     Depends on: `_distributed_worker` taking these arguments and asserting `torch.cuda.is_available()` and
     `num_devices_per_machine <= torch.cuda.device_count()` before it calls `main_func`, whatever the device type.
@@ -325,8 +451,15 @@ def process_worker(
                 local_rank, train_without_cuda_checks, world_size, num_devices_per_machine, machine_rank, dist_url,
                 config, timeout, device_type,
             )  # fmt: skip
+    except SystemExit as exit_:
+        if isinstance(exit_.code, str):  # a one-line error of the plugin's (bad input, a file it cannot write)
+            raise ProcessFailed(exit_.code) from None
+        raise
     except Exception as error:
-        raise SystemExit(f"{config.method_name}: error: process {rank}: {first_line(error)}") from None
+        if lost_a_peer(error):
+            raise SystemExit(PEER_LOST_EXIT) from None
+        line = f"{config.method_name}: error: process {rank}: {first_line(error)}; the other processes were stopped"
+        raise ProcessFailed(line) from None
 
 
 def remove_frustum(viewer: Viewer, frame: int) -> None:
@@ -346,6 +479,43 @@ def set_render_defaults(viewer: Viewer, max_res: int, train_util: float) -> None
     """
     viewer.control_panel._max_res.value = max_res
     viewer.control_panel._train_util.value = train_util
+
+
+RENDER_STOP_SECONDS = 30.0
+"""How long the process waits at exit for each render thread to end (an interrupted render ends within a line)."""
+
+_rendering_viewers: "weakref.WeakSet[Viewer]" = weakref.WeakSet()
+"""Viewers whose render threads `stop_rendering` ends when the process exits."""
+
+
+def stop_rendering_at_exit(viewer: Viewer) -> None:
+    """End `viewer`'s render threads before the process exits, whatever ends it: a render thread still running torch
+    code while the interpreter shuts down aborts the process ("terminate called without an active exception")."""
+    if not _rendering_viewers:
+        atexit.register(_stop_every_viewer_rendering)
+    _rendering_viewers.add(viewer)
+
+
+def _stop_every_viewer_rendering() -> None:
+    for viewer in list(_rendering_viewers):
+        stop_rendering(viewer)
+    _rendering_viewers.clear()
+
+
+def stop_rendering(viewer: Viewer) -> None:
+    """Stop and wait for the render threads of `viewer` (one per browser), interrupting a render under way.
+
+    Depends on: `Viewer.render_statemachines` (a RenderStateMachine thread per client) and RenderStateMachine's
+    `running` (its loop's condition), `interrupt_render_flag` (ends a render at its next Python line) and
+    `render_trigger` (the event its loop waits on).
+    """
+    machines = list(viewer.render_statemachines.values())
+    for machine in machines:
+        machine.running = False
+        machine.interrupt_render_flag = True
+        machine.render_trigger.set()
+    for machine in machines:
+        machine.join(timeout=RENDER_STOP_SECONDS)
 
 
 def show_step(viewer: Viewer, step: int) -> None:
@@ -373,9 +543,11 @@ def rerender(viewer: Viewer) -> None:
     viewer._trigger_rerender()
 
 
-TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings")
-"""Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`) and the
-viewer's start-up note (`_check_viewer_warnings`, called by `setup` right after the viewer starts); `LiveViewerTrainer`
+TRAINER_OVERRIDES = ("_load_checkpoint", "_init_viewer_state", "_check_viewer_warnings", "_after_train")
+"""Private methods of nerfstudio's `Trainer` that `ContinualTrainer` overrides: resuming (`_load_checkpoint`), the
+viewer's start-up note (`_check_viewer_warnings`, called by `setup` right after the viewer starts) and the end of
+training (`_after_train`, called by `train` after its loop, which it leaves with `Trainer.step` one past the last step
+trained when the pipeline stopped it: the loop sets `step` before it checks `stop_training`); `LiveViewerTrainer`
 overrides the viewer's scene (`_init_viewer_state`, called at the start of `train`)."""
 
 
@@ -471,6 +643,15 @@ def trained_model(pipeline: VanillaPipeline) -> nn.Module:
     Depends on: `VanillaPipeline._model`, as `wrap_model`.
     """
     return pipeline._model
+
+
+def model_state_of(pipeline_state: Mapping[str, Any]) -> Dict[str, Any]:
+    """The model's part of a pipeline's state dict, keyed as the model's own state dict.
+
+    Depends on: `VanillaPipeline` registering its model as `_model` (state-dict keys `_model.`).
+    """
+    prefix = "_model."
+    return {key[len(prefix) :]: value for key, value in pipeline_state.items() if key.startswith(prefix)}
 
 
 def model_keys_of_one_process(pipeline: VanillaPipeline, state: Mapping[str, Any]) -> Dict[str, Any]:

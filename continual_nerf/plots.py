@@ -27,14 +27,16 @@ def draw_accuracy_matrix(
     num_tasks: int,
     value_format: Optional[str] = "{:.1f}",
     value_size: float = 7,
+    colour_map: str = "viridis",
 ) -> AxesImage:
-    """Heat map of R[i][j] (PSNR of task j after training task i) on `axes`, blank above the diagonal for unseen
-    tasks and where a value is not available (None), the values written in the cells in `value_format` (None: not written; neither beyond 12 tasks), in black
-    on the bright end of the colour map, and the task numbers in the task colours."""
+    """Heat map of R[i][j] (PSNR of task j after training task i; or another measure, coloured by `colour_map`) on
+    `axes`, blank above the diagonal for unseen tasks and where a value is None, the values written in the cells in
+    `value_format` (None: not written; neither beyond 12 tasks), in black on the bright end of the colour map, and the
+    task numbers in the task colours."""
     matrix = np.full((max(len(psnr), 1), num_tasks), np.nan)
     for i, row in enumerate(psnr):
-        matrix[i, : len(row)] = np.array(row, dtype=float)  # None: not available, blank
-    image = axes.imshow(matrix, cmap="viridis", aspect="auto")
+        matrix[i, : len(row)] = np.array(row, dtype=float)  # None: nothing measured
+    image = axes.imshow(matrix, cmap=colour_map, aspect="auto")
     if value_format is not None and num_tasks <= 12:
         bright = np.asarray(image.norm(matrix)) > 0.6
         for (i, j), value in np.ndenumerate(matrix):

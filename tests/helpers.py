@@ -21,7 +21,7 @@ import zipfile
 import zlib
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, BinaryIO, Dict, List, Optional, Sequence
+from typing import Any, BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import pyarrow as pa
@@ -54,6 +54,9 @@ DEMO_CACHE = Path(__file__).parent / ".cache" / "continual-demo"
 
 SUBPROCESS_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 """One thread per training subprocess: two processes with two threads each on two busy cores run ten times slower."""
+
+RUN_TIMEOUT = 600.0
+"""Seconds a test's subprocess may take before it counts as hung: generous, as two busy cores make runs slow."""
 
 
 def tiny_config(
@@ -154,23 +157,39 @@ def ns_train_command(output_dir: Path, timestamp: str, options: Sequence[str], d
 
 def run_ns_train(command: Sequence[str]) -> subprocess.CompletedProcess:
     """Run an ns-train command line to its end (one thread), capturing its output as text."""
-    return subprocess.run(command, check=False, capture_output=True, text=True, timeout=600, env=SUBPROCESS_ENV)
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=SUBPROCESS_ENV)
+    stdout, stderr = finish(run, "ns-train")
+    return subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
 
 
-def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int, timeout: float = 300.0) -> None:
+def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int) -> None:
     """Send signal `number` to `process` as soon as `checkpoint` appears (complete: checkpoints are renamed into
     place)."""
-    deadline = time.monotonic() + timeout
-    while not checkpoint.exists():
-        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {checkpoint.name} was saved"
-        assert time.monotonic() < deadline, f"no {checkpoint.name} after {timeout} s"
-        time.sleep(0.01)
+    wait_while_running(process, checkpoint.exists, f"{checkpoint.name} is saved")
     os.kill(process.pid, number)
+
+
+def wait_while_running(process: subprocess.Popen, done: Callable[[], bool], what: str) -> None:
+    """Wait until `done()`; the test fails if `process` ends first, or is still running without it after RUN_TIMEOUT
+    seconds (a hang)."""
+    deadline = time.monotonic() + RUN_TIMEOUT
+    while not done():
+        assert process.poll() is None, f"the run ended (exit {process.returncode}) before {what}"
+        assert time.monotonic() < deadline, f"still running after {RUN_TIMEOUT:g} s, a hang, and not yet {what}"
+        time.sleep(0.01)
 
 
 def train(config: ContinualTrainerConfig) -> ContinualTrainer:
     """Train `config` in this process as `ns-train` does (seeded with --machine.seed); returns the trainer."""
     return train_like_ns_train(config)
+
+
+def stopped_run(config: ContinualTrainerConfig, last_step: int) -> Path:
+    """Train `config` as a run stopped after `last_step` (as Ctrl-C or a lost machine leaves one); returns its latest
+    checkpoint, the one to resume (a closed task's earlier checkpoints keep the model's weights only)."""
+    config.max_num_iterations = last_step + 1
+    train(config)
+    return config.get_checkpoint_dir() / f"step-{last_step:09d}.ckpt"
 
 
 WIDTH, HEIGHT = 32, 24
@@ -251,6 +270,24 @@ def edit_transforms(folder: Path, **frame_changes: Dict) -> Dict:
         frame.update(frame_changes.get(Path(frame["file_path"]).stem, {}))
     path.write_text(json.dumps(meta))
     return meta
+
+
+def depth_millimetres(index: int, width: int = WIDTH, height: int = HEIGHT) -> np.ndarray:
+    """(height, width) uint16 depth map of frame `index`, in millimetres: 1 m + 100 mm per frame + 1 mm per pixel in
+    flat order, so that every value tells its frame and pixel."""
+    return (1000 + 100 * index + np.arange(width * height)).reshape(height, width).astype(np.uint16)
+
+
+def with_depth_maps(folder: Path, width: int = WIDTH, height: int = HEIGHT) -> Path:
+    """A transforms.json capture (write_transforms) given a 16-bit millimetre depth map per frame, depth/frame_<n>.png
+    (depth_file_path, as ns-process-data record3d writes it), of `width` x `height`."""
+    (folder / "depth").mkdir(exist_ok=True)
+    changes = {}
+    for index, number in enumerate(NUMBERS):
+        Image.fromarray(depth_millimetres(index, width, height)).save(folder / "depth" / f"frame_{number}.png")
+        changes[f"frame_{number}"] = {"depth_file_path": f"depth/frame_{number}.png"}
+    edit_transforms(folder, **changes)
+    return folder
 
 
 ALL_MASKED = 6
@@ -343,15 +380,30 @@ def jpeg_bytes(index: int) -> bytes:
     return buffer.getvalue()
 
 
-def write_exported(folder: Path, poses: np.ndarray, lost: tuple = ()) -> Path:
+SCANNET_DEPTH_SIZE = (WIDTH // 2, HEIGHT // 2)
+"""The generated scenes' depth maps: half the colour images' size (ScanNet's: 640x480 beside 1296x968 colour)."""
+SCANNET_DEPTH_INTRINSIC = np.diag([0.5, 0.5, 1, 1]) @ SCANNET_INTRINSIC
+"""The depth camera of the generated scenes: the colour camera at half the size, so colour pixel (u, v) sees depth
+pixel (u // 2, v // 2)."""
+
+
+def write_exported(
+    folder: Path, poses: np.ndarray, lost: tuple = (), depth_intrinsic: Optional[np.ndarray] = None
+) -> Path:
     """SensReader's export: color/<i>.jpg, pose/<i>.txt, intrinsic/intrinsic_color.txt; the colour images are 32x24
-    copies of the colour camera's."""
+    copies of the colour camera's. With `depth_intrinsic`, also depth/<i>.png (depth_millimetres, 16x12) and
+    intrinsic/intrinsic_depth.txt."""
     for sub in ("color", "pose", "intrinsic"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     np.savetxt(folder / "intrinsic" / "intrinsic_color.txt", EXPORTED_INTRINSIC)
     for i, pose in enumerate(poses):
         (folder / "color" / f"{i}.jpg").write_bytes(jpeg_bytes(i))
         np.savetxt(folder / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i in lost else pose)
+    if depth_intrinsic is not None:
+        (folder / "depth").mkdir(exist_ok=True)
+        np.savetxt(folder / "intrinsic" / "intrinsic_depth.txt", depth_intrinsic)
+        for i in range(len(poses)):
+            Image.fromarray(depth_millimetres(i, *SCANNET_DEPTH_SIZE)).save(folder / "depth" / f"{i}.png")
     return folder
 
 
@@ -363,27 +415,29 @@ def write_sens(
     depth_compression: int = 1,
     sparse_depth_bytes: Optional[int] = None,
     intrinsic: np.ndarray = SCANNET_INTRINSIC,
+    sparse_depth_frame: int = 0,
 ) -> Dict[int, bytes]:
-    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes.
+    """A .sens file per the format: header, then per frame pose, timestamps, sizes, colour and depth bytes (every
+    depth frame the same: millimetres 0, 1, 2, ... in flat order, seen by SCANNET_DEPTH_INTRINSIC).
 
-    `sparse_depth_bytes` gives frame 0 a depth block of that size left as a hole (a sparse file), so a
-    reader that loads the depth bytes instead of seeking past them shows in its memory use.
+    `sparse_depth_bytes` gives frame `sparse_depth_frame` a depth block of that size left as a hole (a sparse file),
+    so a reader that loads the depth bytes instead of seeking past them shows in its memory use.
     """
-    depth_w, depth_h = 16, 12
-    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()
+    depth_w, depth_h = SCANNET_DEPTH_SIZE
+    depth = np.arange(depth_w * depth_h, dtype=np.uint16).tobytes()  # millimetres: 0 at the first pixel (no depth)
     depth = zlib.compress(depth) if depth_compression == 1 else depth
     name = b"StructureSensor"
     colours = {i: jpeg_bytes(i) for i in range(len(poses))}
     with path.open("wb") as sens:
         sens.write(struct.pack("<I", 4) + struct.pack("<Q", len(name)) + name)
-        for matrix in (intrinsic, np.eye(4), SCANNET_INTRINSIC * 0.5, np.eye(4)):
+        for matrix in (intrinsic, np.eye(4), SCANNET_DEPTH_INTRINSIC, np.eye(4)):
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
         sens.write(struct.pack("<ii", color_compression, depth_compression))
         sens.write(struct.pack("<IIII", WIDTH, HEIGHT, depth_w, depth_h))
         sens.write(struct.pack("<f", 1000.0) + struct.pack("<Q", len(poses)))
         for i, pose in enumerate(poses):
             matrix = np.full((4, 4), -np.inf) if i in lost else pose
-            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == 0) else len(depth)
+            depth_size = sparse_depth_bytes if (sparse_depth_bytes and i == sparse_depth_frame) else len(depth)
             sens.write(struct.pack("<16f", *matrix.astype(np.float32).ravel()))
             sens.write(struct.pack("<QQ", 1000 * i, 1000 * i + 3) + struct.pack("<QQ", len(colours[i]), depth_size))
             sens.write(colours[i])
@@ -425,13 +479,32 @@ def groundtruth_line(t: float, scale: float = 1.0) -> str:
     return " ".join(f"{v:.9f}" for v in [t, *pose_at(t)[:3, 3], *quaternion])
 
 
+TUM_DEPTH_FACTOR = 5000
+"""TUM's depth PNGs: 5000 per metre."""
+
+
+def tum_depth_metres(index: int) -> float:
+    """The (constant) depth of the `index`-th depth map write_sequence writes: 1 m + 10 cm per map."""
+    return 1.0 + 0.1 * index
+
+
 def write_sequence(
     folder: Path,
     image_times: np.ndarray = IMAGE_TIMES,
     pose_times: np.ndarray = POSE_TIMES,
     groundtruth_lines: Optional[List[str]] = None,
+    depth_times: Optional[np.ndarray] = None,
 ) -> Path:
-    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each."""
+    """rgb/<t>.png, rgb.txt and groundtruth.txt with the dataset's three comment lines each; with `depth_times`, also
+    depth/<t>.png (uniform tum_depth_metres of its place in depth_times, 16-bit, 5000 per metre) and depth.txt."""
+    if depth_times is not None:
+        (folder / "depth").mkdir(parents=True)
+        depth_lines = ["# depth maps", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
+        for i, t in enumerate(depth_times):
+            value = round(tum_depth_metres(i) * TUM_DEPTH_FACTOR)
+            Image.fromarray(np.full((HEIGHT, WIDTH), value, dtype=np.uint16)).save(folder / "depth" / f"{t:.6f}.png")
+            depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+        (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     (folder / "rgb").mkdir(parents=True)
     rgb_lines = ["# color images", "# file: 'rgbd_dataset.bag'", "# timestamp filename"]
     for i, t in enumerate(image_times):
@@ -721,18 +794,21 @@ def recorded_train_loop(
         trainer.callbacks.append(TrainingCallback(after, lambda step: time.sleep(slow_seconds)))
     if global_rank == dying_rank:
         trainer.callbacks.append(TrainingCallback(after, _die_after_second_iteration))
+    pause: Dict[str, int] = {}
     if global_rank == 0 and pausing_seconds:  # after every callback of the trainer's own
-        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds)))
+        trainer.callbacks.append(TrainingCallback(after, functools.partial(_pause, trainer, pausing_seconds, pause)))
     trainer.train()
-    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step}
+    summary = {"switches": switches, "accuracy_rows": len(pipeline.accuracy.psnr), "last_step": trainer.step, **pause}
     (records_dir / f"rank{global_rank}.json").write_text(json.dumps(summary))
 
 
-def _pause(trainer: ContinualTrainer, seconds: float, step: int) -> None:
-    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do."""
+def _pause(trainer: ContinualTrainer, seconds: float, pause: Dict[str, int], step: int) -> None:
+    """At step 1, pause `trainer` now and resume it `seconds` later from another thread, as the viewer's buttons do;
+    `pause` records the step training was at when it resumed."""
 
     def resume() -> None:
         time.sleep(seconds)
+        pause["step_when_resumed"] = trainer.step
         trainer.training_state = "training"
 
     if step == 1:
@@ -754,9 +830,24 @@ def two_process_command(output_dir: Path, timeout_seconds: float = 60.0, **optio
 
 
 def two_process_run(output_dir: Path, timeout_seconds: float = 60.0, **options: Any) -> "subprocess.CompletedProcess":
-    """two_process_command, run to its end."""
+    """two_process_command, run to its end (a hang fails the test once RUN_TIMEOUT has passed)."""
     command = two_process_command(output_dir, timeout_seconds, **options)
-    return subprocess.run(command, check=False, env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600)
+    run = subprocess.Popen(command, env=SUBPROCESS_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stdout, stderr = finish(run, "the two-process run")
+    return subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
+
+
+def finish(process: subprocess.Popen, what: str, timeout: float = RUN_TIMEOUT) -> Tuple[str, str]:
+    """The process's output once it has ended; a process still running after `timeout` seconds is a hang: it is
+    killed and the test fails saying so."""
+    try:
+        return process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+        raise AssertionError(
+            f"{what} still ran after {timeout:g} s, a hang; its last output: {stderr[-2000:]}"
+        ) from None
 
 
 def launch_from_json(arguments: str) -> None:
@@ -766,6 +857,7 @@ def launch_from_json(arguments: str) -> None:
     recording = {name: options.pop(name) for name in recorded if name in options}
     timeout_seconds = options.pop("timeout_seconds")
     config = tiny_config(Path(options.pop("output_dir")), demo_parser(), **options.pop("tiny", {}))
+    config.max_num_iterations = options.pop("max_num_iterations", None)
     config.pipeline.datamanager = dataclasses.replace(config.pipeline.datamanager, **options)
     config.timestamp = "two-processes"
     launch_two_processes(config, timeout_seconds, **recording)
@@ -792,6 +884,26 @@ def collectives_probe(rank: int, port: int, output_dir: Path) -> None:
     }
     torch.save(results, output_dir / f"rank{rank}.pt")
     dist.destroy_process_group()
+
+
+class Killed(BaseException):
+    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
+
+
+def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
+    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
+    real_save, calls = torch.save, []
+
+    def save(obj, file, *args, **kwargs) -> None:
+        calls.append(file)
+        if len(calls) < save_number:
+            return real_save(obj, file, *args, **kwargs)
+        buffer = io.BytesIO()
+        real_save(obj, buffer)
+        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise Killed
+
+    monkeypatch.setattr(torch, "save", save)
 
 
 def flip_tensor_bytes(checkpoint: bytes) -> bytes:

@@ -27,8 +27,11 @@ import pytest
 from helpers import (
     CAMERAS,
     DEMO_CACHE,
+    HEIGHT,
     IMAGE_TIMES,
+    SCANNET_DEPTH_INTRINSIC,
     SUBPROCESS_ENV,
+    WIDTH,
     arc_poses,
     corrupt,
     demo_parser,
@@ -42,6 +45,7 @@ from helpers import (
     tiny_config,
     train,
     v1_frame,
+    with_depth_maps,
     write_exported,
     write_sens,
     write_sequence,
@@ -50,11 +54,13 @@ from helpers import (
 )
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig, DataparserOutputs
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.model_components.losses import DepthLossType
 from nerfstudio.utils import writer
 from PIL import Image
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.dataparsers.scannet_dataparser import ContinualScanNetDataParserConfig
@@ -65,6 +71,7 @@ from continual_nerf.errors import ContinualConfigError
 from continual_nerf.method_configs import (
     CONTINUAL_NERF_MEIL,
     CONTINUAL_NGP,
+    CONTINUAL_NGP_DEPTH,
     CONTINUAL_NGP_INCRE,
     continual_ngp_ewc,
     continual_ngp_joint,
@@ -192,6 +199,55 @@ def tum_resized_to_another_aspect_ratio(context: Context) -> Tuple[ContinualTrai
     return corpus_run(ContinualTumDataParserConfig(data=sequence)), message
 
 
+def depth_capture(edit: Callable[[Path], str]) -> Build:
+    """nerfstudio_capture with a depth map per frame, trained by continual-ngp-depth, broken by `edit`."""
+
+    def build(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+        folder = with_depth_maps(write_transforms(context.scratch / "capture", numbered_frames(arc_poses())))
+        message = edit(folder)
+        return corpus_run(OrderedCaptureDataParserConfig(data=folder), method=CONTINUAL_NGP_DEPTH), message
+
+    return build
+
+
+def colour_depth_map(folder: Path) -> str:
+    path = folder / "depth" / "frame_4.png"
+    Image.new("RGB", (WIDTH, HEIGHT)).save(path)
+    return f"{path}: depth map mode RGB is not supported (one channel of 16-bit integers or 32-bit floats"
+
+
+def truncated_depth_map_of_task_2(folder: Path) -> str:
+    path = folder / "depth" / "frame_16.png"  # its header stays readable: the values fail when task 2 opens
+    path.write_bytes(path.read_bytes()[:-200])
+    return f"{path}: cannot read depth map ("
+
+
+def depth_method_without_depth(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = write_transforms(context.scratch / "capture", numbered_frames(arc_poses()))
+    config = corpus_run(OrderedCaptureDataParserConfig(data=folder), method=CONTINUAL_NGP_DEPTH)
+    return config, f"{folder}: has no depth maps (ScanNet depth/, TUM depth.txt, transforms.json depth_file_path)"
+
+
+def depth_method_on_a_stream(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    config = stream_config(context.scratch / "runs", context.scratch / "capture", "wait", 4, 2)
+    model = {f.name: getattr(config.pipeline.model, f.name) for f in dataclasses.fields(config.pipeline.model)}
+    config.pipeline.model = ContinualNGPDepthModelConfig(**{k: v for k, v in model.items() if k != "_target"})
+    return config, "a model that trains on depth (continual-ngp-depth) needs a finished capture's depth maps"
+
+
+def scannet_depth_map_missing(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    folder = write_exported(context.scratch / "scene0101_00", scannet_poses(6), depth_intrinsic=SCANNET_DEPTH_INTRINSIC)
+    (folder / "depth" / "4.png").unlink()
+    return corpus_run(ContinualScanNetDataParserConfig(data=folder)), f"{folder / 'depth' / '4.png'}: depth map missing"
+
+
+def sens_occi_depth(context: Context) -> Tuple[ContinualTrainerConfig, str]:
+    sens = context.scratch / "scene.sens"
+    write_sens(sens, scannet_poses(4), depth_compression=2)
+    message = f"{sens}: depth frames are occi_ushort-compressed; only raw_ushort and zlib_ushort depth can be read"
+    return corpus_run(ContinualScanNetDataParserConfig(data=sens)), message
+
+
 def scannet_intrinsics_nan(context: Context) -> Tuple[ContinualTrainerConfig, str]:
     folder = write_exported(context.scratch / "scene0101_00", scannet_poses(6))
     intrinsic_file = folder / "intrinsic" / "intrinsic_color.txt"
@@ -295,7 +351,12 @@ def reuse_earlier_folder(context: Context) -> Tuple[ContinualTrainerConfig, str]
 CORPUS = [
     BadInput("num-tasks-0", option("--pipeline.datamanager.num-tasks must be at least 1, got 0", num_tasks=0)),
     BadInput(
-        "num-tasks-too-many", option("--pipeline.datamanager.num-tasks 9 is too large for 12 frames", num_tasks=9)
+        "num-tasks-too-many",
+        option(
+            ": 12 frames are too few for --pipeline.datamanager.num-tasks 9: a task needs 2 frames, one to train on "
+            "and one to test on; use at most 6 tasks",
+            num_tasks=9,
+        ),
     ),
     BadInput(
         "budget-0-iterations",
@@ -336,6 +397,21 @@ CORPUS = [
     BadInput("scannet-intrinsics-nan", scannet_intrinsics_nan),
     BadInput("scannet-truncated-sens", truncated_sens),
     BadInput("waymo-corrupt-record", corrupt_tfrecord),
+    BadInput("depth-map-of-colour", depth_capture(colour_depth_map), fails_in="train"),
+    BadInput("truncated-depth-map-released-mid-run", depth_capture(truncated_depth_map_of_task_2), fails_in="train"),
+    BadInput("depth-method-on-a-capture-without-depth", depth_method_without_depth),
+    BadInput("depth-method-on-a-stream", depth_method_on_a_stream),
+    BadInput("scannet-depth-map-missing", scannet_depth_map_missing),
+    BadInput("scannet-sens-occi-depth", sens_occi_depth),
+    BadInput(
+        "depth-loss-ranking",
+        lambda context: (
+            with_model_options(
+                earlier_run_config(method=CONTINUAL_NGP_DEPTH), depth_loss_type=DepthLossType.SPARSENERF_RANKING
+            ),
+            "--pipeline.model.depth-loss-type SPARSENERF_RANKING is not supported",
+        ),
+    ),
     BadInput(
         "resume-missing-folder",
         resume(lambda d: f"--load-dir {d}: no such folder", lambda context: context.scratch / "gone"),

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
 import torch
-from helpers import demo_parser, tiny_config, train
+import yaml
+from helpers import demo_parser, stopped_run, tiny_config, train
 from PIL import Image
 
 from continual_nerf.core.continual_dataset import ClosedTaskError
+from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.errors import ContinualConfigError
 
@@ -57,7 +60,7 @@ def test_uniform_sampling_is_the_papers_rule(run_dir):
 
 
 def test_buffer_keeps_an_equal_random_share_of_each_closed_task_and_never_exceeds_its_size():
-    buffer = ExperienceReplayBuffer(size=30)
+    buffer = ExperienceReplayBuffer(pixels=30)
     tasks = [torch.arange(0, 100), torch.arange(100, 140), torch.arange(140, 400)]
     for task, flat in enumerate(tasks):
         colours = (flat.float() / 400)[:, None].expand(-1, 3)
@@ -68,13 +71,15 @@ def test_buffer_keeps_an_equal_random_share_of_each_closed_task_and_never_exceed
             held = buffer.flat[buffer.task == j]
             assert bool(torch.isin(held, pixels).all()) and len(held.unique()) == len(held), "distinct pixels of j"
     assert torch.equal(buffer.rgb[:, 0], (buffer.flat.float() / 400 * 255).round().to(torch.uint8))
-    assert ExperienceReplayBuffer(size=0.05).capacity(400) == 20, "below 1: a fraction of the training pixels"
+    assert ExperienceReplayBuffer(fraction=0.05).capacity(400) == 20, "a share of the training pixels"
+    assert ExperienceReplayBuffer(fraction=1.0).capacity(400) == 400, "1: every pixel, not one"
+    assert ExperienceReplayBuffer(pixels=1).capacity(400) == 1, "a count of pixels"
 
 
 @pytest.mark.slow
 def test_a_run_with_the_buffer_holds_closed_tasks_pixels_only_and_resumes_with_the_same_buffer(run_dir, tmp_path):
     config = tiny_config(run_dir, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
-    config.pipeline.datamanager.replay_buffer_size = 0.02
+    config.pipeline.datamanager.replay_buffer_fraction = 0.02
     trainer = train(config)
     buffer, datamanager = trainer.pipeline.replay_buffer, trainer.pipeline.datamanager
     dataset = datamanager.train_dataset
@@ -88,16 +93,20 @@ def test_a_run_with_the_buffer_holds_closed_tasks_pixels_only_and_resumes_with_t
         image = np.array(Image.open(dataset.image_filenames[frame]))  # a writable copy for torch
         assert torch.equal(rgb, torch.from_numpy(image[local // width, local % width, :3])), "the pixel's own colour"
 
-    resumed = tiny_config(tmp_path / "resumed", demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
-    resumed.pipeline.datamanager.replay_buffer_size = 0.02
-    resumed.load_checkpoint = config.get_checkpoint_dir() / "step-000000005.ckpt"  # the end of task 2
+    def with_buffer(name: str) -> ContinualTrainerConfig:
+        run = tiny_config(tmp_path / name, demo_parser(num_frames=18), num_tasks=3, iterations_per_task=3)
+        run.pipeline.datamanager.replay_buffer_fraction = 0.02
+        return run
+
+    resumed = with_buffer("resumed")
+    resumed.load_checkpoint = stopped_run(with_buffer("stopped"), last_step=5)  # the end of task 2
     again = train(resumed).pipeline.replay_buffer
     for name in ("flat", "rgb", "task"):
         assert torch.equal(getattr(again, name), getattr(buffer, name)), f"the resumed run's buffer {name} differs"
 
 
 def test_batches_with_the_buffer_take_stored_pixels_and_still_read_no_closed_task_image(run_dir):
-    trainer = set_up(run_dir, replay_buffer_size=0.1, replay_buffer_share=0.5)
+    trainer = set_up(run_dir, replay_buffer_fraction=0.1, replay_buffer_share=0.5)
     pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
     datamanager.next_train(0)  # task 1 opens at its first batch
     pipeline.open_next_task()
@@ -114,8 +123,15 @@ def test_batches_with_the_buffer_take_stored_pixels_and_still_read_no_closed_tas
     [
         ({"current_task_fraction": 0.0}, "current-task-fraction must be uniform, sqrt or a share in (0, 1]"),
         ({"current_task_fraction": 1.5}, "current-task-fraction must be uniform, sqrt or a share in (0, 1]"),
-        ({"replay_buffer_size": -1.0}, "replay-buffer-size must be 0 or positive"),
-        ({"replay_buffer_size": 0.01, "replay": False}, "replay-buffer-size must be 0 or positive, and needs replay"),
+        ({"replay_buffer_fraction": -1.0}, "replay-buffer-fraction must be in [0, 1] (a share of the training pixels;"),
+        ({"replay_buffer_fraction": 1.5}, "replay-buffer-fraction must be in [0, 1]"),
+        ({"replay_buffer_pixels": -1}, "replay-buffer-pixels must be 0 or more, got -1"),
+        (
+            {"replay_buffer_fraction": 0.5, "replay_buffer_pixels": 1000},
+            "replay-buffer-fraction 0.5 and --pipeline.datamanager.replay-buffer-pixels 1000 both size the replay "
+            "buffer: give one",
+        ),
+        ({"replay_buffer_pixels": 100, "replay": False}, "needs replay; this run has --pipeline.datamanager.replay"),
         ({"replay_buffer_share": 1.5}, "replay-buffer-share must be in [0, 1]"),
     ],
 )
@@ -126,3 +142,27 @@ def test_bad_share_and_buffer_options_are_one_line_errors(run_dir, options, mess
     with pytest.raises(ContinualConfigError, match=message.replace("(", r"\(").replace("[", r"\[")) as error:
         config.pipeline.datamanager.setup(device="cpu")
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "options, line",
+    [
+        ({"replay_buffer_fraction": 1.0}, "Replay buffer: keeps every training pixel (6,480) of every closed task"),
+        ({"replay_buffer_pixels": 1}, "Replay buffer: keeps 1 of the 6,480 training pixels (0.02%), an equal share"),
+        ({"replay_buffer_fraction": 0.1}, "Replay buffer: keeps 648 of the 6,480 training pixels (10.00%), an equal"),
+    ],
+)
+def test_the_run_says_at_start_how_many_pixels_its_buffer_keeps(run_dir, capsys, options, line):
+    set_up(run_dir, **options)
+    assert line in capsys.readouterr().out
+
+
+def test_a_config_yml_with_the_former_buffer_size_loads_into_the_fraction_or_the_count(run_dir):
+    written = yaml.dump(tiny_config(run_dir, demo_parser(num_frames=18)))
+    assert "replay_buffer_fraction: 0.0\n" in written and "replay_buffer_pixels: 0\n" in written
+    for size, fraction, pixels in (("0.02", 0.02, 0), ("5000.0", 0.0, 5000)):
+        former = written.replace("replay_buffer_fraction: 0.0\n", f"replay_buffer_size: {size}\n")
+        former = re.sub(r"\n *replay_buffer_pixels: 0\n", "\n", former)
+        datamanager = yaml.load(former, Loader=yaml.Loader).pipeline.datamanager
+        assert (datamanager.replay_buffer_fraction, datamanager.replay_buffer_pixels) == (fraction, pixels)
+        assert not hasattr(datamanager, "replay_buffer_size")

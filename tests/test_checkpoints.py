@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import errno
-import io
 import os
 import subprocess
 from pathlib import Path
@@ -11,19 +10,23 @@ from typing import BinaryIO, Callable, Optional
 
 import pytest
 import torch
-from helpers import demo_parser, fill_the_disk_at_checkpoint, flip_tensor_bytes, tiny_config
+from helpers import (
+    Killed,
+    demo_parser,
+    fill_the_disk_at_checkpoint,
+    flip_tensor_bytes,
+    kill_in_the_middle_of_save,
+    tiny_config,
+)
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.atomic_files import write_atomically, write_text_atomically
 from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_pipeline import ORACLE_PREFIX
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.errors import CheckpointError, OutputError
-
-
-class Killed(BaseException):
-    """Stands in for SIGKILL: nothing in the run catches it, so no clean-up code runs after it."""
 
 
 def three_tasks(run_dir: Path, timestamp: str) -> ContinualTrainerConfig:
@@ -38,22 +41,6 @@ def run(config: ContinualTrainerConfig) -> AccuracyMatrix:
     """ns-train's own training function (it seeds from config.machine.seed); returns the run's accuracy matrix."""
     train_loop(local_rank=0, world_size=1, config=config)
     return AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
-
-
-def kill_in_the_middle_of_save(monkeypatch, save_number: int) -> None:
-    """The `save_number`-th torch.save writes half of its bytes, then the process 'dies'."""
-    real_save, calls = torch.save, []
-
-    def save(obj, file, *args, **kwargs) -> None:
-        calls.append(file)
-        if len(calls) < save_number:
-            return real_save(obj, file, *args, **kwargs)
-        buffer = io.BytesIO()
-        real_save(obj, buffer)
-        file.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
-        raise Killed
-
-    monkeypatch.setattr(torch, "save", save)
 
 
 @pytest.mark.slow
@@ -231,3 +218,45 @@ def test_temporary_files_a_killed_save_left_are_removed_at_the_next_start(run_di
     resumed.save_config()  # the start of ns-train
     assert not stale.exists() and in_progress.exists(), "only files of processes no longer running are removed"
     assert f"Removed {stale}, left by a save that was killed" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_closed_tasks_checkpoint_keeps_the_weights_only_and_loads_with_the_oracle_as_its_model(
+    run_dir, single_thread
+):
+    config = three_tasks(run_dir, "slim")
+    config.steps_per_save = 2  # checkpoints mid-task too, which only resuming needs
+    run(config)
+    checkpoint_dir = config.get_checkpoint_dir()
+    assert sorted(path.name for path in checkpoint_dir.iterdir()) == [
+        "step-000000003.ckpt", "step-000000007.ckpt", "step-000000011.ckpt",
+    ], "the tasks' ends only: mid-task checkpoints go once a later one is saved"  # fmt: skip
+    closed, latest = (
+        read_checkpoint(checkpoint_dir / "step-000000003.ckpt"),
+        read_checkpoint(checkpoint_dir / "step-000000011.ckpt"),
+    )
+    assert closed["weights_only"] and not closed["optimizers"] and "rng" not in closed
+    assert not any(key.startswith(ORACLE_PREFIX) for key in closed["pipeline"])
+    assert any(key.startswith(ORACLE_PREFIX) for key in latest["pipeline"]) and latest["optimizers"]
+    size = {path.name: path.stat().st_size for path in checkpoint_dir.iterdir()}
+    assert size["step-000000003.ckpt"] < size["step-000000011.ckpt"] / 3, "the model alone: no oracle nor Adam moments"
+
+    pipeline = config.pipeline.setup(device="cpu", test_mode="test")
+    pipeline.load_pipeline(latest["pipeline"], latest["step"])  # the oracle is built, as in the run viewer
+    pipeline.load_pipeline(closed["pipeline"], closed["step"])
+    oracle = pipeline.replay_oracle.model.state_dict()
+    weights = {name: value for name, value in pipeline.model.state_dict().items() if isinstance(value, torch.Tensor)}
+    assert weights, "the model has weights to compare"
+    for name, value in weights.items():
+        assert torch.equal(oracle[name], value), name
+        assert torch.equal(value, closed["pipeline"]["_model." + name]), name
+
+
+@pytest.mark.slow
+def test_resuming_from_a_closed_tasks_weights_only_checkpoint_is_one_line_naming_the_latest(run_dir, single_thread):
+    config = three_tasks(run_dir, "slim-resume")
+    run(config)
+    again = three_tasks(run_dir, "slim-resume-again")
+    again.load_dir, again.load_step = config.get_checkpoint_dir(), 3
+    with pytest.raises(SystemExit, match="keeps the model's weights of a finished task only, .* step-000000011.ckpt"):
+        train_loop(local_rank=0, world_size=1, config=again)

@@ -9,6 +9,7 @@ import pytest
 import torch
 from helpers import demo_parser, tiny_config, train
 
+from continual_nerf.checkpoints import WEIGHTS_ONLY
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 
 pytestmark = pytest.mark.slow  # trains models, runs subprocesses or a browser
@@ -48,10 +49,12 @@ def test_accuracy_matrix_and_a_checkpoint_per_task_are_written(finished_run):
     assert matrix.steps == [3, 7]
     checkpoints = sorted((finished_run / "nerfstudio_models").glob("step-*.ckpt"))
     assert [c.name for c in checkpoints] == ["step-000000003.ckpt", "step-000000007.ckpt"]
-    state = torch.load(checkpoints[0], map_location="cpu", weights_only=False)
-    assert any(key.startswith("replay_oracle.model.") for key in state["pipeline"]), "oracle saved"
-    assert state["pipeline"]["_extra_state"]["task"]["current"] == 1, "task 2 was released at that point"
-    assert set(state["optimizers"]) == {"proposal_networks", "fields"}
+    closed, latest = (torch.load(c, map_location="cpu", weights_only=False) for c in checkpoints)
+    assert closed[WEIGHTS_ONLY] and not closed["optimizers"], "a closed task's checkpoint keeps the weights only"
+    assert not any(key.startswith("replay_oracle.") for key in closed["pipeline"]), "its oracle equals its model"
+    assert closed["pipeline"]["_extra_state"]["task"]["current"] == 1, "task 2 was released at that point"
+    assert any(key.startswith("replay_oracle.model.") for key in latest["pipeline"]), "the latest one resumes"
+    assert set(latest["optimizers"]) == {"proposal_networks", "fields"} and not latest.get(WEIGHTS_ONLY)
     assert (finished_run / "dataparser_transforms.json").exists()
 
 
@@ -98,5 +101,17 @@ def test_a_wall_clock_budget_per_task_ends_each_task_and_the_run(run_dir):
     matrix = trainer.pipeline.accuracy
     assert matrix.finished and len(matrix.psnr) == 2
     assert matrix.steps[1] > matrix.steps[0], "task 2 trained for its own second"
-    # nerfstudio's loop sets the next step before it sees the stop flag
-    assert trainer.step == matrix.steps[1] + 1, "the run stopped right after the last task"
+    assert trainer.step == matrix.steps[1], "the run ends at its last task's last step"
+    assert checkpoint_names(config) == [f"step-{step:09d}.ckpt" for step in matrix.steps], "no checkpoint past it"
+
+
+def test_a_run_its_tasks_end_before_max_num_iterations_ends_at_its_last_trained_step(run_dir):
+    config = tiny_config(run_dir, demo_parser(num_frames=12), num_tasks=2, iterations_per_task=2)
+    config.max_num_iterations = 50
+    trainer = train(config)
+    assert trainer.pipeline.accuracy.steps == [1, 3] and trainer.step == 3
+    assert checkpoint_names(config) == ["step-000000001.ckpt", "step-000000003.ckpt"], "none of step 4, never trained"
+
+
+def checkpoint_names(config) -> list:
+    return sorted(path.name for path in config.get_checkpoint_dir().iterdir())

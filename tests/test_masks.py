@@ -102,7 +102,7 @@ def test_the_replay_buffer_keeps_no_masked_out_pixel(tmp_path):
     dataset = manager.train_dataset
     valid = expected_valid(dataset)
     start, end = dataset.open_task_pixel_range()
-    buffer = ExperienceReplayBuffer(size=end - start)  # room for every pixel of task 1
+    buffer = ExperienceReplayBuffer(pixels=end - start)  # room for every pixel of task 1
     flat, rgb = manager.open_task_pixels()
     buffer.add_task(0, flat, rgb, total_pixels=manager.total_train_pixels())
     assert sorted(buffer.flat.tolist()) == torch.nonzero(valid[start:end]).view(-1).add(start).tolist()

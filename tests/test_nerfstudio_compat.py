@@ -6,8 +6,11 @@ from __future__ import annotations
 import inspect
 import random
 import socket
+import sys
 import threading
 import time
+import traceback
+import warnings
 from datetime import timedelta
 from typing import List
 from unittest import mock
@@ -16,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 import viser.transforms as vtf
-from helpers import demo_parser, tiny_config, train
+from helpers import demo_parser, stopped_run, tiny_config, train
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -30,6 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.recipes import set_up_like_ns_train, small_model
 
@@ -42,6 +46,36 @@ def test_nerfacto_builds_offline_with_lpips_replaced():
     assert isinstance(model.lpips, compat._LPIPSNotComputed), "nerfstudio no longer builds LPIPS where it is patched"
 
 
+def test_nerfstudio_raises_the_warnings_kept_out_of_the_terminal_and_only_those_are(monkeypatch):
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.configs.base_config import MachineConfig
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    cameras = Cameras(camera_to_worlds=torch.eye(4)[None, :3], fx=10.0, fy=10.0, cx=2.0, cy=2.0, width=4, height=4)
+
+    def raised() -> set:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if quiet:
+                compat.quiet_nerfstudio_warnings(on_cpu=True)
+            cameras.generate_rays(camera_indices=torch.zeros(3, 1, dtype=torch.long), coords=torch.zeros(3, 2))
+            Trainer(
+                TrainerConfig(method_name="nerfacto", mixed_precision=True, machine=MachineConfig(device_type="cpu"))
+            )
+            warnings.warn("a warning of anyone else's", UserWarning)
+        return {str(warning.message).split(".")[0] for warning in caught}
+
+    monkeypatch.setattr(sys, "warnoptions", [])
+    quiet = False
+    assert {"Using a non-tuple sequence for multidimensional indexing is deprecated and will be changed in pytorch 2",
+            "`torch", "torch"} <= raised(), "nerfstudio's camera indexing and its GradScaler on a CPU warn"  # fmt: skip
+    quiet = True
+    assert raised() == {"a warning of anyone else's"}, "kept out by message and module, nothing else"
+    assert "ignore:Using a non-tuple sequence for multidimensional indexing:UserWarning:nerfstudio.cameras.cameras" in (
+        sys.warnoptions
+    ), "the processes ns-train starts get the same filters"
+
+
 def test_proposal_sampler_counters_exist_and_round_trip():
     model = small_model(ContinualNGPModelConfig(compile=False)).setup(scene_box=SCENE_BOX, num_train_data=1)
     state = compat.proposal_sampler_state(model)
@@ -50,6 +84,27 @@ def test_proposal_sampler_counters_exist_and_round_trip():
     assert compat.proposal_sampler_state(model) == {"proposal_step": 7, "proposal_steps_since_update": 2}
     model.proposal_sampler.step_cb(11)  # nerfstudio's own callback sets the counter the checkpoint keeps
     assert compat.proposal_sampler_state(model)["proposal_step"] == 11
+
+
+def test_depth_nerfacto_decays_its_sigma_in_an_attribute_no_checkpoint_keeps():
+    config = ContinualNGPDepthModelConfig(
+        compile=False, should_decay_sigma=True, starting_depth_sigma=0.2, sigma_decay_rate=0.5, depth_sigma=0.01
+    )
+    model = small_model(config).setup(scene_box=SCENE_BOX, num_train_data=1)
+    assert compat.depth_sigma(model) == pytest.approx(0.2)
+    assert not any("sigma" in name for name, _ in model.named_buffers()), "nerfstudio made it a buffer: drop the touch"
+    model.train()
+
+    def training_metrics() -> None:
+        rays = random_rays(model, 8)
+        rays.metadata["directions_norm"] = torch.ones(8, 1)
+        model.get_metrics_dict(model(rays), {"image": torch.rand(8, 3), "depth_image": torch.rand(8, 1)})
+
+    training_metrics()
+    assert compat.depth_sigma(model) == pytest.approx(0.1), "depth-nerfacto decays it at every training batch"
+    compat.set_depth_sigma(model, 0.05)
+    training_metrics()
+    assert compat.depth_sigma(model) == pytest.approx(0.025), "and decays the sigma it is given"
 
 
 def test_rays_are_sampled_as_in_training_while_the_model_evaluates():
@@ -114,11 +169,9 @@ def test_seed_like_ns_train_seeds_python_numpy_and_torch():
 def test_a_resumed_run_ends_at_the_same_step_as_the_uninterrupted_one(tmp_path):
     """Depends on nerfstudio 1.1.5 counting max_num_iterations from the resumed step (set_resume_step)."""
     parser = demo_parser()
-    whole = tiny_config(tmp_path / "whole", parser, num_tasks=2, iterations_per_task=2)
-    train(whole)
-    checkpoint_dir = whole.get_checkpoint_dir()
+    stopped = tiny_config(tmp_path / "stopped", parser, num_tasks=2, iterations_per_task=2)
     resumed = tiny_config(tmp_path / "resumed", parser, num_tasks=2, iterations_per_task=2)
-    resumed.load_checkpoint = checkpoint_dir / "step-000000001.ckpt"  # the end of task 1
+    resumed.load_checkpoint = stopped_run(stopped, last_step=1)  # the end of task 1
     trainer = train(resumed)
     matrix = AccuracyMatrix.read(resumed.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     assert matrix.finished and matrix.steps == [1, 3] and trainer.step == 3
@@ -181,8 +234,38 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         compat.disable_training_buttons(viewer)
         assert viewer.pause_train.disabled and viewer.resume_train.disabled
         compat.rerender(viewer)  # no browser connected: nothing to render, and no error
+        import websocket  # the test extra's
+
+        page = websocket.create_connection(f"ws://127.0.0.1:{config.viewer.websocket_port}", suppress_origin=True)
+        try:
+            page.send_binary(compat.viewer_camera_message(np.ones(3), np.zeros(3), np.array([0, 0, 1.0]), 1.0, 1.4))
+            deadline = time.monotonic() + 120  # a hang, not a slow machine
+            while not viewer.render_statemachines:
+                assert time.monotonic() < deadline, "no render thread for the page"
+                time.sleep(0.05)
+            threads = list(viewer.render_statemachines.values())
+            compat.stop_rendering(viewer)
+            assert not any(thread.is_alive() for thread in threads), "the page's render thread has ended"
+        finally:
+            page.close()
     finally:
         trainer.shutdown()
+
+
+def test_an_empty_profile_is_dropped_and_a_run_s_profile_kept():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import profiler
+
+    profiler.PROFILER[:] = [profiler.Profiler(LoggingConfig())]
+    try:
+        compat.forget_empty_profile()
+        assert profiler.PROFILER == [], "set-up ended before a step: nothing to print"
+        profiler.PROFILER.append(profiler.Profiler(LoggingConfig()))
+        profiler.PROFILER[0].update_time("Trainer.train_iteration", 0.0, 0.5)
+        compat.forget_empty_profile()
+        assert len(profiler.PROFILER) == 1, "a run's timings are kept for nerfstudio to print"
+    finally:
+        profiler.PROFILER.clear()
 
 
 def test_vanilla_pipeline_wraps_with_cuda_device_ids_only_for_several_processes():
@@ -201,7 +284,7 @@ def test_ns_train_saves_the_config_right_before_launch_and_looks_launch_up_when_
     monkeypatch.setattr(ns_train, "launch", ns_train.launch)
     monkeypatch.setattr(ns_train, "_distributed_worker", ns_train._distributed_worker)
     monkeypatch.setattr(compat, "_nerfstudio_launch", [])
-    compat.launch_processes_here()
+    compat.launch_processes_here(lambda: None)
     assert ns_train.launch is compat.launch_reporting_one_line
     assert ns_train._distributed_worker is compat.process_worker
 
@@ -222,12 +305,46 @@ def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(m
     assert seen == [((0, 1, None, 0), torch.cuda.is_available())]  # training sees the machine as it is
 
 
+def test_the_launcher_prints_the_failed_process_s_own_line_or_how_it_ended():
+    from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
+
+    line = "continual-ngp: error: data/scene: no such folder"
+    try:
+        raise compat.ProcessFailed(line)
+    except compat.ProcessFailed:
+        traceback_text = traceback.format_exc()  # what mp.spawn hands the launching process
+    raised = ProcessRaisedException(f"\n\n-- Process 1 terminated with the following error:\n{traceback_text}", 1, 42)
+    assert compat.failed_process_line(raised, "continual-ngp") == line
+    killed = ProcessExitedException("process 1 terminated with signal SIGKILL", 1, 42, -9, "SIGKILL")
+    assert compat.failed_process_line(killed, "continual-ngp") == (
+        "continual-ngp: error: process 1 terminated with signal SIGKILL; the other processes were stopped"
+    )
+    lost = ProcessExitedException("process 0 terminated with exit code 75", 0, 41, compat.PEER_LOST_EXIT)
+    assert "process 0 lost its connection to another process" in compat.failed_process_line(lost, "continual-ngp")
+    gloo = "[gloo/transport/tcp/pair.cc:545] Read error [127.0.0.1]:41659: Connection reset by peer. This is typically"
+    assert compat.lost_a_peer(RuntimeError(gloo)) and not compat.lost_a_peer(RuntimeError("CUDA out of memory"))
+
+
 def test_trainer_methods_the_continual_trainer_overrides():
     for name in compat.TRAINER_OVERRIDES:
         assert callable(getattr(Trainer, name, None)), f"nerfstudio's Trainer has no {name} any more"
     setup, train = inspect.getsource(Trainer.setup), inspect.getsource(Trainer.train)
     assert setup.index("ViewerState(") < setup.index("self._check_viewer_warnings()"), "called after the viewer starts"
     assert "self._load_checkpoint()" in setup and "self._init_viewer_state()" in train
+    loop = train[train.index("for step in range") :]
+    assert loop.index("self.step = step") < loop.index("if self.stop_training:"), "step moves on before the check"
+    assert "self.save_checkpoint(self.step)" in inspect.getsource(Trainer._after_train)
+
+
+def test_the_terminals_progress_counts_to_the_step_it_is_given():
+    from nerfstudio.configs.base_config import LoggingConfig
+    from nerfstudio.utils import writer
+
+    writer.setup_local_writer(LoggingConfig(), max_iter=10)  # what a run resumed at step 30 of 40 has left
+    compat.count_progress_to(40)
+    writer.put_time(name=writer.EventName.ITER_TRAIN_TIME, duration=2.0, step=30, avg_over_steps=True, update_eta=True)
+    assert writer.GLOBAL_BUFFER["events"][writer.EventName.ETA.value] == "20 s, 0.000 ms", "10 steps left of 2 s"
+    assert writer.GLOBAL_BUFFER["max_iter"] == 40, "% done divides the step by it"
 
 
 def test_a_camera_message_makes_a_viser_client_with_that_camera():
@@ -242,7 +359,7 @@ def test_a_camera_message_makes_a_viser_client_with_that_camera():
     page = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=10, suppress_origin=True)
     try:
         page.send_binary(compat.viewer_camera_message(position, look_at, up, fov=1.0, aspect=1.5))
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 120  # a hang, not a slow machine
         while not cameras and time.monotonic() < deadline:
             time.sleep(0.05)
         assert cameras, "viser did not take the message as a client's camera"
@@ -335,6 +452,7 @@ def test_the_pipeline_trains_the_model_it_keeps_as_model_and_unwraps_it():
     model = nn.Linear(2, 1)
     pipeline._model = model  # as VanillaPipeline.__init__ keeps it
     assert compat.model_keys_of_one_process(pipeline, pipeline.state_dict()).keys() == {"_model.weight", "_model.bias"}
+    assert compat.model_state_of(pipeline.state_dict()).keys() == model.state_dict().keys(), "the model's own keys"
     compat.wrap_model(pipeline, Wrapper)
     assert pipeline.model is model, "nerfstudio's `model` unwraps the wrapper's module"
     assert isinstance(compat.trained_model(pipeline), Wrapper)

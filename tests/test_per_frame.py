@@ -11,7 +11,7 @@ from typing import Dict
 import numpy as np
 import pytest
 import torch
-from helpers import DEMO_CACHE, demo_parser, tiny_config, train
+from helpers import DEMO_CACHE, demo_parser, stopped_run, tiny_config, train
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
@@ -349,7 +349,7 @@ def test_a_resumed_run_keeps_the_codes_and_corrections_and_ends_as_the_uninterru
 
     whole = config("whole")
     train(whole)
-    end_of_task_1 = whole.get_checkpoint_dir() / "step-000000003.ckpt"
+    end_of_task_1 = stopped_run(config("stopped"), last_step=3)
     resumed = config("resumed")
     resumed.load_checkpoint = end_of_task_1
     trainer = train(resumed)

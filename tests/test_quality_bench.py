@@ -15,9 +15,10 @@ from helpers import DEMO_CACHE
 from PIL import Image
 
 from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
-from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_against_tasks, total
+from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_quality, series, total
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.method_configs import CONTINUAL_NGP
@@ -40,6 +41,20 @@ def test_a_variant_is_the_registered_method_with_its_options_as_ns_train_parses_
     assert config.pipeline.datamanager.num_tasks == 3 and config.pipeline.datamanager.iterations_per_task == 7
     demo = config.pipeline.datamanager.dataparser
     assert isinstance(demo, ContinualDemoDataParserConfig) and demo.scene == "street" and demo.exposure_segments == 3
+
+
+def test_a_depth_variant_trains_continual_ngp_depth_on_the_demos_flawed_depth(tmp_path: Path):
+    recipe = parse_recipe(
+        "depth, kinect=continual-ngp-depth --pipeline.model.depth-loss-mult 0.3 "
+        "continual-demo --depth-noise 0.0015 --depth-max-range 4 --depth-edge-holes 1 --depth-dropout 0.05"
+    )
+    config = config_of(QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out"), recipe)
+    assert (
+        isinstance(config.pipeline.model, ContinualNGPDepthModelConfig) and config.pipeline.model.depth_loss_mult == 0.3
+    )
+    demo = config.pipeline.datamanager.dataparser
+    assert isinstance(demo, ContinualDemoDataParserConfig)
+    assert (demo.depth_noise, demo.depth_max_range, demo.depth_edge_holes, demo.depth_dropout) == (0.0015, 4, 1, 0.05)
 
 
 def test_every_runs_options_reach_the_method_and_the_demo_beside_the_recipes_own(tmp_path: Path):
@@ -164,6 +179,21 @@ def test_a_summary_has_each_tasks_psnr_right_after_its_own_training():
     assert joint.after_own_task is None, "a joint run's tasks all train from the start: no task has its own training"
 
 
+def test_a_summary_of_a_run_with_depth_has_its_final_error_and_each_tasks_growth(tmp_path: Path):
+    matrix = matrix_of([[30.0], [29.0, 32.0], [28.0, 31.0, 26.0]])
+    matrix.depth_abs_rel = [[0.10], [0.11, 0.05], [0.12, None, 0.04]]
+    matrix.depth_rmse, matrix.mean_depth_abs_rel, matrix.mean_depth_rmse = [[0.3]] * 3, [0.1, 0.08, 0.07], [0.3] * 3
+    summary = RunSummary.of(matrix, train_seconds=1.0)
+    assert (summary.final_depth_abs_rel, summary.final_depth_rmse) == (0.07, 0.3)
+    assert summary.depth_growth == [pytest.approx(0.2), None, 0.0], "task 1 ends 20 % above its error after task 1"
+    colour_only = RunSummary.of(matrix_of([[30.0], [29.0, 32.0]]), train_seconds=1.0)
+    assert colour_only.final_depth_abs_rel is None and colour_only.depth_growth is None
+    saved = dataclasses.asdict(colour_only)
+    for key in ("final_depth_abs_rel", "final_depth_rmse", "depth_growth"):
+        del saved[key]
+    assert RunSummary(**saved) == colour_only, "a summary.json written before depth reads back"
+
+
 @pytest.mark.parametrize(("text", "title"), [("1x1200", "1 task x 1200 iterations"), ("5x20s", "5 tasks x 20 s")])
 def test_a_setting_titles_its_tables_in_words(text: str, title: str):
     assert str(Setting.parse(text)) == title
@@ -179,12 +209,12 @@ def test_every_pixel_kept_replays_every_closed_tasks_pixels_and_nothing_the_orac
     bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
     datamanager = config_of(bench, Recipe.of("every pixel kept", RECIPES["every pixel kept"])).pipeline.datamanager
     assert datamanager.replay_buffer_share == 1.0
-    buffer = ExperienceReplayBuffer(datamanager.replay_buffer_size)
+    buffer = ExperienceReplayBuffer(datamanager.replay_buffer_fraction, datamanager.replay_buffer_pixels)
     flat, rgb = torch.arange(10_000), torch.rand(10_000, 3)
     buffer.add_task(0, flat, rgb, total_pixels=30_000)
     buffer.add_task(1, flat + 10_000, rgb, total_pixels=30_000)
     assert buffer.tasks_held() == {0: 10_000, 1: 10_000}, "two closed tasks, all of their pixels"
-    assert CONTINUAL_NGP.pipeline.datamanager.replay_buffer_size == 0, "the registered method keeps no pixel"
+    assert CONTINUAL_NGP.pipeline.datamanager.replay_buffer_fraction == 0, "the registered method keeps no pixel"
 
 
 @pytest.mark.slow
@@ -220,8 +250,18 @@ def test_a_sweep_over_task_counts_is_plotted_one_line_per_recipe_and_budget(tmp_
         scene: {key: {"a": run(30.0 - tasks), JOINT: run(31.0)} for key, tasks in (("2x3", 2), ("4x3", 4), ("8x3", 8))}
         for scene in ("room", "street")
     }
-    plot_against_tasks(results, tmp_path / "plot.png")
+    plot_quality(results, tmp_path / "plot.png")
     image = Image.open(tmp_path / "plot.png")
     assert image.size[0] > image.size[1] > 100, "two panels side by side"
     assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 20, "lines drawn, not blank"
     assert total(Setting.parse("4x3")) == "12 iterations" and total(Setting.parse("4x2.5s")) == "10 s"
+
+
+def test_the_plot_runs_against_the_budget_per_task_where_the_tasks_are_the_same_and_per_budget_where_not():
+    same_tasks = [Setting.parse(key) for key in ("5x60", "5x120", "5x240")]
+    assert series(same_tasks, lambda s: float(s.num_tasks)) == {"": [(60.0, 5.0), (120.0, 5.0), (240.0, 5.0)]}
+    sweep = [Setting.parse(key) for key in ("2x60", "5x60", "5x120", "10x60")]
+    lines = series(sweep, lambda s: 0.0)
+    assert set(lines) == {" (60 per task)", " (120 per task)"} and len(lines[" (60 per task)"]) == 3
+    fixed_total = [Setting.parse(key) for key in ("2x600", "5x240", "10x120")]
+    assert set(series(fixed_total, lambda s: 0.0)) == {" (1200 iterations in all)"}

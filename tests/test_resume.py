@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import signal
 import subprocess
@@ -9,7 +10,16 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import SUBPROCESS_ENV, demo_parser, ns_train_command, run_ns_train, signal_when_saved
+from helpers import (
+    SUBPROCESS_ENV,
+    demo_parser,
+    ns_train_command,
+    run_ns_train,
+    signal_when_saved,
+    stopped_run,
+    tiny_config,
+    train,
+)
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
@@ -97,3 +107,18 @@ def test_a_run_killed_mid_task_resumes_to_the_uninterrupted_result(tmp_path, sin
     assert [len(row) for row in after_resume.psnr] == [1, 2, 3] and max(differences) <= 0.3, (
         f"resumed {after_resume.psnr} vs uninterrupted {uninterrupted.psnr}"
     )
+
+
+def test_a_resumed_run_counts_its_progress_and_eta_to_the_run_s_last_step(tmp_path, capsys, single_thread):
+    parser = demo_parser(num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT)
+    stopped = tiny_config(tmp_path / "stopped", parser, num_tasks=2, iterations_per_task=3)
+    resumed = tiny_config(tmp_path / "resumed", parser, num_tasks=2, iterations_per_task=3)
+    resumed.load_checkpoint = stopped_run(stopped, last_step=2)  # the end of task 1
+    resumed.logging.local_writer.enable = True
+    resumed.logging.steps_per_log, resumed.logging.local_writer.max_log_size = 1, 0  # every step, one line each
+    capsys.readouterr()
+    train(resumed)
+    shown = re.findall(r"^(\d+) \(([\d.]+)%\)\s+\S+.*?\s{2,}(\S.*?)\s{2,}", capsys.readouterr().out, re.MULTILINE)
+    steps = {int(step): float(done) for step, done, _ in shown}
+    assert steps[3] == pytest.approx(50.0) and steps[5] == pytest.approx(83.33), "% of the run's 6 steps"
+    assert not [eta for _, _, eta in shown if " h" in eta], "no ETA of hours for three steps left"

@@ -13,12 +13,13 @@ from typing import List, Optional
 
 import numpy as np
 import pytest
-from helpers import demo_parser, replayed, stream_config
+from helpers import RUN_TIMEOUT, demo_parser, replayed, stream_config
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from continual_nerf.core.continual_pipeline import ContinualPipeline
-from continual_nerf.dataparsers.capture_folder import CaptureWatcher
+from continual_nerf.dataparsers.capture_folder import TRAINING_FILE, CaptureWatcher, announce_training, trained_task
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParserConfig
-from continual_nerf.errors import ContinualConfigError, DatasetError
+from continual_nerf.errors import ContinualConfigError, ContinualNerfError, DatasetError
 from continual_nerf.streaming.replay_capture import ReplayCaptureConfig, frame_json, replay, write_frame, write_marker
 from continual_nerf.streaming.streaming_datamanager import StreamingDataManagerConfig
 
@@ -87,7 +88,7 @@ class CaptureWriter(threading.Thread):
         write_marker(self.folder, NUM_FRAMES - 1, "end")
 
     def _wait_for_training_in_task(self, task: int) -> None:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + RUN_TIMEOUT  # a hang, not a slow machine
         while not (
             self.pipeline is not None
             and self.pipeline.task.current == task
@@ -147,6 +148,9 @@ def test_tasks_open_in_order_as_frames_arrive_and_every_frame_is_used_once(tmp_p
 
     accuracy = trainer.pipeline.accuracy
     assert [len(row) for row in accuracy.psnr] == [1, 2, 3, 4] and accuracy.finished
+    assert trainer.step == accuracy.steps[-1], "the run ends at the step the capture's last task ended"
+    checkpoints = sorted(path.name for path in trainer.checkpoint_dir.iterdir())
+    assert checkpoints == [f"step-{step:09d}.ckpt" for step in accuracy.steps], "one per task end, none past it"
     iterations_per_task = np.diff([-1] + accuracy.steps).tolist()
     if idle == "wait":
         assert iterations_per_task == [BUDGET] * 4, "waiting trains exactly the budget on each task"
@@ -262,3 +266,43 @@ def test_next_task_now_closes_the_task_being_captured(tmp_path):
     assert datamanager.tasks_available() == 3
     datamanager.release(2)
     assert [len(task) for task in frames_of_tasks(datamanager)] == [3, 3, 2]
+
+
+@pytest.mark.slow
+def test_waiting_for_training_streams_each_task_in_while_the_task_before_it_trains(tmp_path):
+    capture = tmp_path / "capture"
+    writer = ReplayCaptureConfig(
+        output=capture, fps=0, task_every=4, wait_for_training=True, dataparser=demo_parser(num_frames=12)
+    )
+    thread = threading.Thread(target=replay, args=[writer], daemon=True)
+    thread.start()
+    config = stream_config(tmp_path / "outputs", capture, "wait", frames_per_task=4, iterations_per_task=3)
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    written_when_training_started: List[int] = []
+
+    def count_frames(step: int) -> None:
+        if step == 0:
+            written_when_training_started.append(len(list(capture.glob("*.json"))))
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], count_frames))
+    trainer.train()
+    thread.join(timeout=RUN_TIMEOUT)
+    assert written_when_training_started == [4], "as fast as it may write, the writer waited: only task 1 was there"
+    assert [len(row) for row in trainer.pipeline.accuracy.psnr] == [1, 2, 3], "tasks 2 and 3 arrived while it trained"
+    assert not thread.is_alive()
+
+
+def test_waiting_for_training_needs_tasks_of_known_frames(tmp_path):
+    with pytest.raises(ContinualNerfError, match="--wait-for-training needs --task-every"):
+        replay(ReplayCaptureConfig(output=tmp_path, wait_for_training=True, dataparser=demo_parser(num_frames=4)))
+
+
+def test_the_training_run_s_answer_is_its_own_file_written_without_following_a_link(tmp_path):
+    (tmp_path / "elsewhere.txt").write_text("kept")
+    (tmp_path / TRAINING_FILE).symlink_to(tmp_path / "elsewhere.txt")
+    announce_training(tmp_path, 2)
+    assert trained_task(tmp_path) == 2 and not (tmp_path / TRAINING_FILE).is_symlink()
+    assert (tmp_path / "elsewhere.txt").read_text() == "kept"
+    assert CaptureWatcher(tmp_path, unreadable_timeout=0).new_entries() == [], "never read as an entry"

@@ -19,9 +19,10 @@ from PIL import Image
 from continual_nerf.core.continual_pipeline import ContinualStatus
 from continual_nerf.method_configs import continual_ngp, continual_ngp_stream
 from continual_nerf.nerfstudio_compat import VISER_NERFSTUDIO_SCALE_RATIO
-from continual_nerf.viewer.continual_panel import mean_psnr_text, task_text
+from continual_nerf.viewer.continual_panel import PICTURES, accuracy_rows, mean_psnr_text, task_text
 from continual_nerf.viewer.pictures import (
     CSS_DPI,
+    DEPTH_ALT,
     DISPLAY_WIDTH,
     PANEL_DPI,
     accuracy_figure,
@@ -98,6 +99,18 @@ def test_the_accuracy_picture_writes_readable_values_that_fit_their_cells_and_na
         assert value.get_fontsize() / 72 * figure.dpi * css_pixels >= 13, "a font whose digits are 9 px high or more"
         assert value.get_window_extent(renderer).width * css_pixels < column, value.get_text()
     assert "(dB)" in colour_bar.get_xlabel()
+
+
+def test_the_accuracy_picture_switches_to_depth_errors_where_there_are_some():
+    with_depth = ContinualStatus(1, 3, False, "", [[20.0], [19.0, 22.0]], [20.0, 20.5], False, [[0.1], [0.12, None]])
+    assert accuracy_rows(with_depth, PICTURES[0]) == ([[20.0], [19.0, 22.0]], False)
+    assert accuracy_rows(with_depth, PICTURES[1]) == ([[0.1], [0.12, None]], True)
+    without = ContinualStatus(1, 3, False, "", [[20.0]], [20.0], False)
+    assert accuracy_rows(without, PICTURES[1]) == ([[20.0]], False), "a capture without depth keeps PSNR"
+    picture = accuracy_markdown(with_depth.depth_rows, 3, depth=True)
+    assert picture.startswith(f"![{DEPTH_ALT}]") and png_of(picture).size[0] == DISPLAY_WIDTH * PANEL_DPI // CSS_DPI
+    colour_bar = accuracy_figure(with_depth.depth_rows, 3, depth=True).axes[1]
+    assert colour_bar.get_xlabel() == "depth abs rel"
 
 
 def test_panel_texts():

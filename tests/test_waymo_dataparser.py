@@ -36,6 +36,7 @@ from helpers import (
 )
 from PIL import Image
 
+from continual_nerf.core.continual_datamanager import ContinualDataManagerConfig
 from continual_nerf.dataparsers.tfrecord import Message, crc32c, masked_crc32c
 from continual_nerf.dataparsers.waymo_dataparser import WaymoDataParserConfig, capture_frames, read_segment
 from continual_nerf.dataparsers.waymo_index import CAMERA_IDS
@@ -112,6 +113,16 @@ def test_real_v1_frame_has_five_cameras_as_formats_md_describes(tmp_path):
         with Image.open(path) as image:  # reads the JPEG header only
             assert image.format == "JPEG"
             assert image.size == (width, height) == ((1920, 886) if camera.startswith("SIDE") else (1920, 1280))
+
+
+def test_a_one_instant_record_says_it_has_too_few_instants_for_any_task(tmp_path):
+    datamanager = ContinualDataManagerConfig(dataparser=config(REAL_V1, tmp_path), num_tasks=1)
+    with pytest.raises(ContinualConfigError) as error:
+        datamanager.setup(device="cpu")
+    assert str(error.value) == (
+        f"{REAL_V1}: 1 rig instant (5 images) is too few for --pipeline.datamanager.num-tasks 1: a task needs 2 rig "
+        "instants, one to train on and one to test on; too few for any task"
+    )
 
 
 def test_real_v2_vehicle_poses_in_time_order():

@@ -157,6 +157,13 @@ class RunSummary:
     """What the recipe measured beyond the accuracy matrix (pose errors, ...)."""
     commit: str = "unknown"
     """The commit of the code the run trained with."""
+    final_depth_abs_rel: Optional[float] = None
+    """Mean absolute relative depth error over all test frames with depth after the last task; None without depth."""
+    final_depth_rmse: Optional[float] = None
+    """Mean depth RMSE (metres) over all test frames with depth after the last task; None without depth."""
+    depth_growth: Optional[List[Optional[float]]] = None
+    """Per task, how far its depth error (abs rel) rose from right after its own training to the end: final / own - 1
+    (0.2: 20 % worse; the geometry it forgot). None without depth, or for a joint run."""
 
     @classmethod
     def of(
@@ -183,6 +190,9 @@ class RunSummary:
             peak_mib_per_task=list(tasks.peak_mib) if tasks is not None else [],
             extras=dict(extras or {}),
             commit=source_commit(),
+            final_depth_abs_rel=matrix.mean_depth_abs_rel[-1] if matrix.mean_depth_abs_rel else None,
+            final_depth_rmse=matrix.mean_depth_rmse[-1] if matrix.mean_depth_rmse else None,
+            depth_growth=depth_growth(matrix),
         )
 
 
@@ -197,6 +207,16 @@ def after_own_task(matrix: AccuracyMatrix) -> Optional[float]:
         return None
     diagonal = [value for row in matrix.psnr for value in [row[-1]] if value is not None]
     return sum(diagonal) / len(diagonal)
+
+
+def depth_growth(matrix: AccuracyMatrix) -> Optional[List[Optional[float]]]:
+    """Per task its final depth error over the one right after its own training, minus 1 (None where either is
+    missing); None without depth rows, or when the first row already measures every task (joint)."""
+    rows = matrix.depth_abs_rel
+    if not rows or len(rows[0]) > 1:
+        return None
+    own = [row[-1] for row in rows]
+    return [None if not first or last is None else last / first - 1 for first, last in zip(own, rows[-1])]
 
 
 def decibels(value: Optional[float]) -> str:

@@ -17,7 +17,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
 import tyro
 from matplotlib.figure import Figure
@@ -33,18 +33,29 @@ from continual_nerf.method_configs import CONTINUAL_NGP
 JOINT = "joint (upper bound)"
 """The recipe every other is compared with."""
 
+FALLING_RATES = (
+    f"--pipeline.lr-decay-per-task {CONTINUAL_NGP.pipeline.lr_decay_per_task} "
+    f"--pipeline.lr-decay-start {CONTINUAL_NGP.pipeline.lr_decay_start}"
+)
+"""continual-ngp's learning rates falling over each task's last quarter, for the bounds that train as it does."""
+SENSOR_FLAWS = "--depth-noise 0.0015 --depth-max-range 4 --depth-edge-holes 1 --depth-dropout 0.05"
+"""continual-demo's depth maps as a Kinect-like sensor records them: noise growing with depth, nothing beyond 4 m, holes
+at edges and at random."""
 RECIPES: Dict[str, str] = {
     "continual-ngp": "continual-ngp",
     "continual-ngp, paper recipe": "continual-ngp-paper",
-    "continual-ngp, ER 1 %": "continual-ngp --pipeline.datamanager.replay-buffer-size 0.01",
-    "continual-ngp, ER 5 %": "continual-ngp --pipeline.datamanager.replay-buffer-size 0.05",
+    "continual-ngp, ER 1 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.01",
+    "continual-ngp, ER 5 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.05",
     # keeps what the continual setting forbids keeping: how far the tasks' arrival alone leaves a run from the bound
-    "every pixel kept": "continual-ngp --pipeline.datamanager.replay-buffer-size 1e9 "
+    "every pixel kept": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 1 "
     "--pipeline.datamanager.replay-buffer-share 1.0",
     "iNGP-Incre": "continual-ngp-incre",
+    "continual-ngp-depth": "continual-ngp-depth",
+    "continual-ngp-depth, sensor flaws": f"continual-ngp-depth continual-demo {SENSOR_FLAWS}",
     # the bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter too
-    JOINT: f"continual-ngp-joint --pipeline.lr-decay-per-task {CONTINUAL_NGP.pipeline.lr_decay_per_task} "
-    f"--pipeline.lr-decay-start {CONTINUAL_NGP.pipeline.lr_decay_start}",
+    JOINT: f"continual-ngp-joint {FALLING_RATES}",
+    "joint, depth": f"continual-ngp-depth --pipeline.datamanager.joint True --pipeline.datamanager.replay False "
+    f"{FALLING_RATES}",
 }
 """What the benchmark trains, by the name its tables give it: ns-train arguments."""
 
@@ -108,8 +119,8 @@ class QualityBenchmark(Grid):
 
 TABLE_COLUMNS = (
     "recipe", "final mean PSNR (dB)", "vs joint (dB)", "per-task spread (dB)", "largest drop from best (dB)",
-    "right after own task (dB)", "mean SSIM", "training s", "iterations", "s per task, first -> last",
-    "peak MiB, first -> last task",
+    "right after own task (dB)", "mean SSIM", "depth abs rel", "largest depth error growth", "training s",
+    "iterations", "s per task, first -> last", "peak MiB, first -> last task",
 )  # fmt: skip
 
 
@@ -117,9 +128,21 @@ def table_row(name: str, run: RunSummary, joint: Optional[RunSummary]) -> List[s
     gap = f"{run.final_mean_psnr - joint.final_mean_psnr:+.2f}" if joint is not None else "n/a"
     return [
         name, f"{run.final_mean_psnr:.2f}", gap, f"{run.spread:.2f}", f"{run.largest_drop:.2f}",
-        decibels(run.after_own_task), f"{run.mean_ssim:.3f}", f"{run.train_seconds:.0f}", str(run.iterations),
+        decibels(run.after_own_task), f"{run.mean_ssim:.3f}", optional(run.final_depth_abs_rel, "{:.3f}"),
+        optional(largest(run.depth_growth), "{:+.0%}"), f"{run.train_seconds:.0f}", str(run.iterations),
         first_to_last(run.seconds_per_task, "{:.1f}"), first_to_last(run.peak_mib_per_task, "{:.0f}"),
     ]  # fmt: skip
+
+
+def optional(value: Optional[float], form: str) -> str:
+    """A table cell of a number a run may not have."""
+    return "n/a" if value is None else form.format(value)
+
+
+def largest(values: Optional[List[Optional[float]]]) -> Optional[float]:
+    """The largest of the values a run has (None where it has none)."""
+    known = [value for value in values or [] if value is not None]
+    return max(known) if known else None
 
 
 def first_to_last(values: List[float], form: str) -> str:
@@ -127,29 +150,36 @@ def first_to_last(values: List[float], form: str) -> str:
     return f"{form.format(values[0])} -> {form.format(values[-1])}" if values else "n/a"
 
 
-def plot_against_tasks(results: Results, path: Path) -> None:
-    """Final mean test PSNR against the number of tasks, one panel per scene, one line per recipe and budget per task
-    (or per total budget where every setting has its own budget per task)."""
+def plot_quality(results: Results, path: Path) -> None:
+    """Final mean test PSNR against the number of tasks, or against the iterations per task where every setting has
+    the same number of tasks (the paper's "instant" axis); one panel per scene, one line per recipe and budget."""
     scenes = list(results)
     figure = Figure(figsize=(5.5 * len(scenes), 4.0), layout="constrained")
     for axes, scene in zip(figure.subplots(1, len(scenes), squeeze=False)[0], scenes):
         settings = [Setting.parse(key) for key in results[scene]]
-        by_task_budget = len({s.key.split("x")[1] for s in settings}) < len(settings)
         for recipe in results[scene][settings[0].key]:
-            series: Dict[str, List[Tuple[int, float]]] = {}
-            for setting in settings:
-                budget = setting.key.split("x")[1] + " per task" if by_task_budget else f"{total(setting)} in all"
-                psnr = results[scene][setting.key][recipe].final_mean_psnr
-                series.setdefault(budget, []).append((setting.num_tasks, psnr))
-            for budget, points in series.items():
-                tasks, psnr = zip(*sorted(points))
-                axes.plot(tasks, psnr, marker="o", label=f"{recipe} ({budget})")
+            for label, points in series(settings, lambda s: results[scene][s.key][recipe].final_mean_psnr).items():
+                x, psnr = zip(*sorted(points))
+                axes.plot(x, psnr, marker="o", label=f"{recipe}{label}")
         axes.set_xscale("log", base=2)
-        axes.set_xlabel("tasks")
+        axes.set_xlabel("tasks" if len({s.num_tasks for s in settings}) > 1 else "iterations per task")
         axes.set_ylabel("final mean test PSNR (dB)")
         axes.set_title(scene)
         axes.legend(fontsize=7)
     figure.savefig(path, dpi=120)
+
+
+def series(settings: List[Setting], value: Callable[[Setting], float]) -> Dict[str, List[Tuple[float, float]]]:
+    """The settings' points (x, value) by line: against the tasks, a line per budget per task (or per total budget
+    where every setting has its own); against the budget per task where the tasks are the same."""
+    if len({s.num_tasks for s in settings}) == 1:
+        return {"": [(float(s.key.split("x")[1].rstrip("s")), value(s)) for s in settings]}
+    by_task_budget = len({s.key.split("x")[1] for s in settings}) < len(settings)
+    lines: Dict[str, List[Tuple[float, float]]] = {}
+    for setting in settings:
+        budget = setting.key.split("x")[1] + " per task" if by_task_budget else f"{total(setting)} in all"
+        lines.setdefault(f" ({budget})", []).append((float(setting.num_tasks), value(setting)))
+    return lines
 
 
 def total(setting: Setting) -> str:

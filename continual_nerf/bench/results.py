@@ -35,10 +35,6 @@ ROOM_CAPTURES = ("clean", "exposure +-30 %", "poses off 1 deg, 1 %")
 ROOM_FEATURES = ("off", "colour transform per image", "pose refinement from mid-task")
 STREET_CAPTURES = ("clean", "camera responses +-20 %")
 STREET_FEATURES = ("off", "codes per image")
-ALIGNED_CAPTURES = ("clean", "poses off 1 deg, 1 %, independent")
-ALIGNED_FEATURES = ("off", "pose refinement")
-ALIGNMENT = "--pipeline.test-pose-alignment-steps 50"
-"""Test poses fitted to their images before they are measured: how captures registered image by image are measured."""
 README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
 """The README's generated table lies between these lines."""
 
@@ -76,19 +72,17 @@ class Results:
         )
 
     def real_captures(self) -> Dict[str, real_capture.RealCaptureBenchmark]:
-        def bench(scene: str, captures: Tuple[str, ...], features: Tuple[str, ...], *options: str):
+        def bench(scene: str, captures: Tuple[str, ...], features: Tuple[str, ...]):
             return real_capture.RealCaptureBenchmark(
                 scenes=(scene,),  # type: ignore[arg-type]
                 captures=captures,
                 features=features,
-                options=options,
-                **self.common(f"real-capture-{scene}{'-aligned' if options else ''}"),  # type: ignore[arg-type]
+                **self.common(f"real-capture-{scene}"),  # type: ignore[arg-type]
             )
 
         return {
             "room": bench("room", ROOM_CAPTURES, ROOM_FEATURES),
             "street": bench("street", STREET_CAPTURES, STREET_FEATURES),
-            "room, test poses fitted": bench("room", ALIGNED_CAPTURES, ALIGNED_FEATURES, ALIGNMENT),
         }
 
     def common(self, name: str) -> Dict[str, object]:

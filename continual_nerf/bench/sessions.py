@@ -310,7 +310,7 @@ def split_measures(run: Run, configs: Sequence[ContinualTrainerConfig]) -> Dict[
     datamanager, model = load_run(configs[-1])
     dataset = datamanager.eval_dataset
     frames = list(range(len(dataset)))
-    psnr, _ = evaluate_frames(model, dataset, frames)  # type: ignore[arg-type]
+    psnr = evaluate_frames(model, dataset, frames).psnr  # type: ignore[arg-type]
     tasks = datamanager.test_task_of_frame()
     first = AccuracyMatrix.read(configs[0].get_base_dir() / ACCURACY_MATRIX_FILENAME)
     return {

@@ -2,7 +2,8 @@
 
 The pipeline decides which task is open (`release`); every training batch samples rays uniformly over all
 pixels of the tasks released so far (over the open task alone without replay). Rays of the open task carry
-their pixels; rays of earlier tasks are marked `is_replay`, for the pipeline's replay oracle to supervise (Eq. 4).
+their pixels (and, for a model that trains on depth, their depth); rays of earlier tasks are marked `is_replay`, for
+the pipeline's replay oracle to supervise (Eq. 4).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from continual_nerf.core.continual_dataset import (
     check_image_headers,
     check_mask_headers,
 )
+from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.core.sessions import (
@@ -46,7 +48,7 @@ from continual_nerf.core.sessions import (
     restricted,
 )
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
-from continual_nerf.errors import ContinualConfigError
+from continual_nerf.errors import ContinualConfigError, DatasetError, plural
 from continual_nerf.validated_config import ValidatedConfig
 
 
@@ -74,9 +76,12 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     current_task_fraction: Union[float, Literal["uniform", "sqrt"]] = 0.5
     """Share of each batch drawn from the open task: a fixed share, sqrt (1/sqrt(k) in task k), or uniform over all
     released pixels (the paper: ~1/k in task k); the rest replays earlier tasks."""
-    replay_buffer_size: float = 0.0
-    """Experience replay: real pixels of closed tasks kept, as a fraction of the training pixels (below 1) or a
-    count; 0 keeps none (the paper)."""
+    replay_buffer_fraction: float = 0.0
+    """Experience replay: real pixels of closed tasks kept, as a share of the training pixels from 0 to 1 (1 keeps
+    every pixel); 0 keeps none (the paper)."""
+    replay_buffer_pixels: int = 0
+    """Experience replay by count: real pixels of closed tasks kept, instead of
+    --pipeline.datamanager.replay-buffer-fraction; 0 keeps none."""
     replay_buffer_share: float = 0.5
     """Share of the replayed rays drawn from the replay buffer while it holds pixels; the oracle renders the rest."""
     # nerfstudio's options for image-based sampling: batches here are drawn from the released tasks' pixels
@@ -105,6 +110,8 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     earlier_sessions: tyro.conf.Suppress[Optional[Path]] = None
     """Set by ns-train when a run continues earlier sessions: the file in its run folder recording their frames (from
     the checkpoint it continues); None: the capture is the run's first session."""
+    train_depth: tyro.conf.Suppress[bool] = False
+    """Serve the open task's depth maps with its pixels: the pipeline sets it when its model trains on depth."""
 
     def validate(self) -> None:
         super().validate()
@@ -128,11 +135,7 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 "--pipeline.datamanager.current-task-fraction must be uniform, sqrt or a share in (0, 1], "
                 f"got {self.current_task_fraction}"
             )
-        if self.replay_buffer_size < 0 or (self.replay_buffer_size > 0 and not self.replay):
-            raise ContinualConfigError(
-                "--pipeline.datamanager.replay-buffer-size must be 0 or positive, and needs replay, "
-                f"got {self.replay_buffer_size} with replay {self.replay}"
-            )
+        self._validate_replay_buffer()
         if self.joint and self.earlier_sessions is not None:
             raise ContinualConfigError(
                 "--pipeline.datamanager.joint trains on every image at once: it cannot continue earlier sessions, "
@@ -147,9 +150,46 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 f"--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got {self.train_num_rays_per_batch}"
             )
 
+    def _validate_replay_buffer(self) -> None:
+        fraction, pixels, option = self.replay_buffer_fraction, self.replay_buffer_pixels, "--pipeline.datamanager."
+        if not 0 <= fraction <= 1:
+            raise ContinualConfigError(
+                f"{option}replay-buffer-fraction must be in [0, 1] (a share of the training pixels; "
+                f"{option}replay-buffer-pixels takes a count), got {fraction:g}"
+            )
+        if pixels < 0:
+            raise ContinualConfigError(f"{option}replay-buffer-pixels must be 0 or more, got {pixels}")
+        if fraction > 0 and pixels > 0:
+            raise ContinualConfigError(
+                f"{option}replay-buffer-fraction {fraction:g} and {option}replay-buffer-pixels {pixels} both size the "
+                "replay buffer: give one"
+            )
+        if (fraction > 0 or pixels > 0) and not self.replay:
+            raise ContinualConfigError(
+                f"the replay buffer ({option}replay-buffer-fraction or -pixels) needs replay; this run has "
+                f"{option}replay False"
+            )
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        # a config.yml from before the two options: `replay_buffer_size`, a share below 1 and a count from 1 up
+        size = state.pop("replay_buffer_size", 0)
+        self.__dict__.update(state)
+        if size:
+            self.replay_buffer_fraction, self.replay_buffer_pixels = (size, 0) if size < 1 else (0.0, int(size))
+
     def frames_known_at_start(self) -> bool:
         """Whether every training frame is known when training starts (per-frame codes and poses need it)."""
         return True
+
+    def task_budget_text(self) -> str:
+        """One task's budget, in words (1000 iterations, 20 s)."""
+        if self.seconds_per_task is not None:
+            return f"{self.seconds_per_task:g} s"
+        return plural(self.iterations_per_task, "iteration")
+
+    def describe_tasks(self) -> str:
+        """The tasks and their budget, in words (3 tasks x 1000 iterations)."""
+        return f"{plural(self.num_tasks, 'task')} x {self.task_budget_text()}"
 
     def budgeted_iterations(self) -> Optional[int]:
         """Iterations the whole task budget takes, or None when tasks are timed (or, streaming, counted by the capture)."""
@@ -267,7 +307,9 @@ class ContinualDataManager(VanillaDataManager):
         )
 
     def create_train_dataset(self) -> ContinualDataset:
-        self.task_split = split_capture(self.train_dataparser_outputs, self.config.num_tasks, self.config.test_interval)
+        self.task_split = split_capture(
+            self.train_dataparser_outputs, self.config.num_tasks, self.config.test_interval, self.capture_name()
+        )
         if self.earlier is not None:
             self._join_earlier_sessions(self.earlier)
         return self.dataset_of_trajectory()
@@ -283,10 +325,16 @@ class ContinualDataManager(VanillaDataManager):
             scale_factor=self._image_scale(),
             for_training=self.test_mode == "val",
             camera_of_frame=camera_ids(outputs)[frames],
+            serve_depth=self.config.train_depth,
         )
         if self.earlier is not None:
             earlier = self.earlier
             dataset.keep_earlier_sessions(earlier.num_train_frames, earlier.valid_bits, earlier.valid_counts)
+        if dataset.serve_depth and dataset.depth_maps is None:
+            raise DatasetError(
+                f"{self.capture_name()}: has no depth maps (ScanNet depth/, TUM depth.txt, transforms.json "
+                "depth_file_path) for the model to train on; train continual-ngp instead"
+            )
         return dataset
 
     def _join_earlier_sessions(self, earlier: SessionRecord) -> None:
@@ -410,13 +458,19 @@ class ContinualDataManager(VanillaDataManager):
         """Open the task training starts or resumes in, once the images still to be read are known to be readable."""
         later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
         check_image_headers(self.train_dataset, later_tasks.tolist())
-        check_image_headers(self.eval_dataset, self.eval_dataset.available_frames())
+        available = self.eval_dataset.available_frames()
+        check_image_headers(self.eval_dataset, available)
+        if self.train_dataset.serve_depth and self.train_dataset.depth_maps is not None:
+            self.train_dataset.depth_maps.check_headers(later_tasks.tolist())
+        if self.eval_dataset.depth_maps is not None:  # the accuracy matrix measures depth on every test frame
+            self.eval_dataset.depth_maps.check_headers(available)
         if self.train_dataset.mask_filenames is not None:  # closed tasks' too: a resumed run reads them again
             check_mask_headers(self.train_dataset, range(len(self.train_dataset)))
         self.train_dataset.open(self.data_task)
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
-        """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false."""
+        """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false, and
+        `depth_image` (when the model trains on depth) their depth, 0 (none) on replayed rays."""
         if self.train_dataset.open_task != self.data_task:
             self.open_released_task()
         self.train_count += 1
@@ -428,21 +482,40 @@ class ContinualDataManager(VanillaDataManager):
         assert pixels is not None, "the open task's pixels are read above"
         image = torch.empty((len(flat), 3), device=self.device)
         image[current] = pixels[flat[current] - start].to(self.device)
+        depth = self._open_task_depths(flat, current, start)
         if self.replay_buffer is not None and len(self.replay_buffer):
-            self._draw_from_replay_buffer(flat, image, is_replay)
+            self._draw_from_replay_buffer(flat, image, is_replay, depth)
         indices = self.ray_indices(flat)
         ray_bundle = self.train_ray_generator(indices)
-        return ray_bundle, {"image": image, "indices": indices, "is_replay": is_replay}
+        batch = {"image": image, "indices": indices, "is_replay": is_replay}
+        if depth is not None:
+            batch[DEPTH_KEY] = depth[:, None]
+        return ray_bundle, batch
 
-    def _draw_from_replay_buffer(self, flat: torch.Tensor, image: torch.Tensor, is_replay: torch.Tensor) -> None:
-        """Turn --replay-buffer-share of the replayed rays into rays of stored pixels, supervised by their colours."""
+    def _open_task_depths(self, flat: torch.Tensor, current: torch.Tensor, start: int) -> Optional[torch.Tensor]:
+        """Per ray (N,) the depth of its pixel where it is one of the open task's, 0 (no depth target) elsewhere; None
+        when the model does not train on depth."""
+        depths = self.train_dataset.task_depths
+        if depths is None:
+            return None
+        depth = torch.zeros(len(flat), device=self.device)
+        depth[current] = depths[flat[current] - start].to(self.device)
+        return depth
+
+    def _draw_from_replay_buffer(
+        self, flat: torch.Tensor, image: torch.Tensor, is_replay: torch.Tensor, depth: Optional[torch.Tensor]
+    ) -> None:
+        """Turn --replay-buffer-share of the replayed rays into rays of stored pixels, supervised by their colours (and
+        their depth, when the buffer keeps it)."""
         assert self.replay_buffer is not None
         replayed = torch.nonzero(is_replay).view(-1)
         chosen = replayed[: round(len(replayed) * self.config.replay_buffer_share)]
-        stored_flat, stored_rgb = self.replay_buffer.sample(len(chosen))
+        stored_flat, stored_rgb, stored_depth = self.replay_buffer.sample(len(chosen))
         flat[chosen] = stored_flat
         image[chosen] = stored_rgb.to(image.device)
         is_replay[chosen] = False
+        if depth is not None and stored_depth is not None:
+            depth[chosen] = stored_depth.to(depth.device)
 
     def open_task_pixels(self) -> Tuple[torch.Tensor, torch.Tensor]:
         """Flat pixel numbers and colours of the open task's pixels that train, unmasked (what a replay buffer keeps a
@@ -454,6 +527,14 @@ class ContinualDataManager(VanillaDataManager):
             return torch.arange(start, end), pixels
         valid = valid_pixels.contains(torch.arange(start, end))
         return torch.arange(start, end)[valid], pixels[valid]
+
+    def open_task_depths(self, flat: torch.Tensor) -> Optional[torch.Tensor]:
+        """Depth of the open task's pixels `flat` (as open_task_pixels numbers them); None unless depth is served."""
+        depths = self.train_dataset.task_depths
+        if depths is None:
+            return None
+        start, _ = self.train_dataset.open_task_pixel_range()
+        return depths[flat - start]
 
     def total_train_pixels(self) -> int:
         return int(self.train_dataset.pixel_offsets[-1])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Iterable, List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -16,6 +16,7 @@ from nerfstudio.data.utils.data_utils import get_image_mask_tensor_from_path
 from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
+from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, DepthMaps, directions_norm
 from continual_nerf.core.per_frame import FRAME_CAMERA, FRAME_TASK
 from continual_nerf.core.valid_pixels import ValidPixels, inside_circle
 from continual_nerf.errors import DatasetError, first_line
@@ -42,7 +43,8 @@ class ContinualDataset(InputDataset):
     a frame of any other task raises ClosedTaskError, which is what keeps old images out of training.
     The task and camera of every frame are in its metadata, which nerfstudio hands to the model. Masks and fisheye
     circles, when the capture has them, decide which pixels `draw_pixels` may draw, for the open task and for replay
-    alike.
+    alike. A model that trains on depth gets the open task's depth maps with its pixels (`serve_depth`), read and
+    dropped with them.
     """
 
     def __init__(
@@ -52,6 +54,7 @@ class ContinualDataset(InputDataset):
         scale_factor: float = 1.0,
         for_training: bool = True,
         camera_of_frame: Optional[np.ndarray] = None,
+        serve_depth: bool = False,
     ):
         # nerfstudio's InputDataset would read each mask into its frame's batch, at the image's full size only; masks
         # are read here instead (read_mask), into the record of the pixels training may draw
@@ -81,16 +84,25 @@ class ContinualDataset(InputDataset):
         cropped = self.crop_radius is not None or self.mask_filenames is not None
         self.valid_pixels = ValidPixels(self.pixel_offsets) if cropped else None
         """Which pixels of the released tasks their masks and circles let train; None without either."""
+        self.depth_maps = DepthMaps.of(dataparser_outputs, self.cameras)
+        """The capture's depth maps; None when it has none."""
+        self.serve_depth = serve_depth
+        """Whether the open task's depth maps are read with its pixels (for a model that trains on depth)."""
+        self.task_depths: Optional[Tensor] = None
+        """z-depth of the open task's pixels (P,) in scene units, 0 where there is none; None unless serve_depth."""
+        self.metadata[METRES_PER_SCENE_UNIT] = 1.0 / float(dataparser_outputs.dataparser_scale)
 
     def frames_of_task(self, task: int) -> torch.Tensor:
         return torch.nonzero(self.task_of_frame == task).view(-1)
 
     def open(self, task: int) -> None:
-        """Close the open task (dropping its pixels) and load the pixels of `task`."""
-        self.task_pixels = None
+        """Close the open task (dropping its pixels and depth) and load the pixels of `task` (and its depth)."""
+        self.close()
         self.open_task = task
         images = [self.get_image_float32(int(i))[..., :3].reshape(-1, 3) for i in self.frames_of_task(task)]
         self.task_pixels = torch.cat(images)
+        if self.serve_depth:
+            self.task_depths = torch.cat([self.get_depth(int(i)).reshape(-1) for i in self.frames_of_task(task)])
         if self.valid_pixels is not None:
             self._record_valid_pixels(task)
 
@@ -144,20 +156,31 @@ class ContinualDataset(InputDataset):
         self.valid_pixels.valid_per_frame[: len(counts)] = counts
 
     def close(self) -> None:
-        """Drop the open task's pixels; no task's pixels are readable afterwards."""
+        """Drop the open task's pixels and depth; no task's pixels are readable afterwards."""
         self.task_pixels = None
+        self.task_depths = None
         self.open_task = None
 
-    def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+    def check_open(self, image_idx: int) -> None:
+        """Refuse to read a frame of a task that is not open (while training)."""
         task = int(self.task_of_frame[image_idx])
         if self.for_training and task != self.open_task:
             raise ClosedTaskError(
                 f"frame {image_idx} ({self.image_filenames[image_idx]}) belongs to task {task + 1}; "
                 f"only the open task's pixels are readable (open: {None if self.open_task is None else self.open_task + 1})"
             )
+
+    def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+        self.check_open(image_idx)
         if not self.for_training and image_idx < self.earlier_frames:
             return read_image_if_kept(self, image_idx)
         return read_image(self, image_idx)
+
+    def get_depth(self, image_idx: int) -> Tensor:
+        """(H, W) z-depth of the frame's pixels as loaded, scene units, 0 where there is none; its task must be open."""
+        assert self.depth_maps is not None, "the capture has depth maps"
+        self.check_open(image_idx)
+        return self.depth_maps.read(image_idx)
 
     def open_task_pixel_range(self) -> tuple[int, int]:
         """Flat pixel numbers [start, end) covered by the open task."""
@@ -171,15 +194,32 @@ class ContinualDataset(InputDataset):
 
 
 class TestFrameDataset(InputDataset):
-    """Held-out test frames: read by the evaluation only, never by training."""
+    """Held-out test frames: read by the evaluation only, never by training. Each frame's batch holds its depth map
+    when the capture has them (nerfstudio's `depth_image`, and its rays' `directions_norm`: the model's depth metrics
+    read them)."""
 
     earlier_frames = 0
     """Test frames of a continued run's earlier sessions, first in the dataset: their images may be gone."""
+
+    def __init__(self, dataparser_outputs: DataparserOutputs, scale_factor: float = 1.0):
+        super().__init__(dataparser_outputs, scale_factor=scale_factor)
+        self.depth_maps = DepthMaps.of(dataparser_outputs, self.cameras)
+        """The test frames' depth maps; None when the capture has none."""
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         if image_idx < self.earlier_frames:
             return read_image_if_kept(self, image_idx)
         return read_image(self, image_idx)
+
+    def get_metadata(self, data: Dict) -> Dict:
+        if self.depth_maps is None:
+            return {}
+        frame = data["image_idx"]
+        # z-depth, and what turns the model's distances along rays into it
+        return {
+            DEPTH_KEY: self.depth_maps.read(frame)[..., None],
+            DIRECTIONS_NORM: directions_norm(self.cameras, frame),
+        }
 
     def available_frames(self) -> List[int]:
         """The frames whose images can be read: every frame but an earlier session's whose image is gone."""

@@ -3,6 +3,7 @@ tasks inside nerfstudio's Trainer loop, through training callbacks, so `ns-train
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -20,16 +21,18 @@ from rich.markup import escape
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
-from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.accuracy_matrix import AccuracyMatrix, DepthRow
 from continual_nerf.core.change_guard import GuardCount, OpenTaskView, open_task_view
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
+from continual_nerf.core.depth_maps import DEPTH_KEY
+from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, euclidean_depth_maps, trains_on_depth
 from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.core.distributed import TaskDecision
-from continual_nerf.core.evaluation import AlignedEvalCameras, PoseAlignment, evaluate_frames
+from continual_nerf.core.evaluation import AlignedEvalCameras, FrameScores, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
-from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.core.replay_oracle import ReplayOracle, depth_target, surface_distance
 from continual_nerf.core.sessions import (
     SESSIONS_KEY,
     SessionRecord,
@@ -43,6 +46,7 @@ from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import (
     model_keys_of_one_process,
+    model_state_of,
     trained_model,
     world_size_for_vanilla_pipeline,
     wrap_model,
@@ -122,6 +126,11 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
                 "--pipeline.model.camera-optimizer.mode need every frame known when training starts; this datamanager "
                 "receives frames while it trains"
             )
+        if trains_on_depth(self.model) and not self.datamanager.frames_known_at_start():
+            raise ContinualConfigError(
+                "a model that trains on depth (continual-ngp-depth) needs a finished capture's depth maps; this "
+                "datamanager receives frames, without depth, while it trains"
+            )
 
 
 @dataclass(frozen=True)
@@ -142,6 +151,9 @@ class ContinualStatus:
     """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
     """Whether the run has trained its last task."""
+    depth_rows: List[List[Optional[float]]] = field(default_factory=list)
+    """The accuracy matrix's depth errors so far: absolute relative error per task after each finished task (None: no
+    test frame with depth); empty for a capture without depth maps."""
 
 
 class ContinualPipeline(VanillaPipeline):
@@ -159,6 +171,9 @@ class ContinualPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
+        # the datamanager reads the open task's depth maps only for a model that trains on them
+        datamanager = dataclasses.replace(config.datamanager, train_depth=trains_on_depth(config.model))
+        config = dataclasses.replace(config, datamanager=datamanager)
         super().__init__(
             config, device, test_mode, world_size_for_vanilla_pipeline(device, world_size), local_rank, grad_scaler
         )
@@ -169,9 +184,12 @@ class ContinualPipeline(VanillaPipeline):
         self.task = TaskState()
         self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
         self.replay_oracle = ReplayOracle(options.train_num_rays_per_batch)
-        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_size)
+        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_fraction, options.replay_buffer_pixels)
         if self.replay_buffer.enabled:
             self.datamanager.replay_buffer = self.replay_buffer
+            if distributed.is_main():
+                total = self.datamanager.total_train_pixels() if options.frames_known_at_start() else None
+                CONSOLE.print(self.replay_buffer.describe(total), markup=False, soft_wrap=True)
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
         self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
@@ -212,6 +230,7 @@ class ContinualPipeline(VanillaPipeline):
             psnr_rows=[list(row) for row in self.accuracy.psnr],
             mean_psnr=list(self.accuracy.mean_psnr),
             finished=self.accuracy.finished,
+            depth_rows=[list(row) for row in self.accuracy.depth_abs_rel],
         )
 
     def get_train_loss_dict(self, step: int):
@@ -229,20 +248,29 @@ class ContinualPipeline(VanillaPipeline):
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         return model_outputs, loss_dict, metrics_dict
 
+    @property
+    def distills_replay_depth(self) -> bool:
+        """Whether replayed rays get the oracle's rendered depth as their depth target
+        (--pipeline.model.distill-replay-depth)."""
+        model = self.config.model
+        return isinstance(model, ContinualNGPDepthModelConfig) and model.distill_replay_depth
+
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
-        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4); with the
-        change guard on, mark those whose surface an open-task frame sees changed (REPLAY_SKIPPED)."""
+        """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4), and their
+        depth targets with its rendered depth when it distils depth too; with the change guard on, mark those whose
+        surface an open-task frame sees changed (REPLAY_SKIPPED), which teach neither."""
         is_replay = batch["is_replay"]
         if not is_replay.any():
             return
         image = batch["image"]
         replayed = ray_bundle[is_replay.to(image.device)]
-        if not self.guards_replay:
-            image[is_replay] = self.replay_oracle.render(replayed).to(image.dtype)
-            return
-        rgb, distance = self.replay_oracle.render_with_distance(replayed)
-        image[is_replay] = rgb.to(image.dtype)
-        if distance is None:
+        outputs = self.replay_oracle.outputs(replayed)
+        image[is_replay] = outputs["rgb"].to(image.dtype)
+        if self.distills_replay_depth:
+            depth = depth_target(outputs, replayed, euclidean_depth_maps(self.config.model))
+            batch[DEPTH_KEY][is_replay] = depth.to(batch[DEPTH_KEY].dtype)
+        distance = surface_distance(outputs)
+        if not self.guards_replay or distance is None:
             return
         view = self._open_task_view()
         rays = (replayed.origins, replayed.directions, distance)
@@ -250,6 +278,8 @@ class ContinualPipeline(VanillaPipeline):
         skipped = torch.zeros_like(is_replay)
         skipped[is_replay] = crossing.to(is_replay.device)
         batch[REPLAY_SKIPPED] = skipped
+        if self.distills_replay_depth:
+            batch[DEPTH_KEY][skipped] = 0.0  # no depth target where the surface changed
         self.guard_count.replayed += int(is_replay.sum())
         self.guard_count.skipped += int(skipped.sum())
 
@@ -403,7 +433,8 @@ class ContinualPipeline(VanillaPipeline):
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
-        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels())
+        depth = self.datamanager.open_task_depths(flat)  # a model that trains on depth keeps it with the pixels
+        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels(), depth)
         if not distributed.is_main():
             return  # every rank keeps its own random share; rank 0's is checkpointed
         CONSOLE.print(
@@ -427,9 +458,9 @@ class ContinualPipeline(VanillaPipeline):
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
         """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`. An earlier session's
         task none of whose test images can be read any more has no value (None: not available)."""
-        row_psnr, row_ssim, mean_psnr = self._measure_seen_tasks()
+        row_psnr, row_ssim, mean_psnr, depth = self._measure_seen_tasks()
         self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
-        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step)
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step, depth)
         path = self.accuracy.write(output_dir)
         writer.put_dict(
             name="Continual PSNR per task",
@@ -437,30 +468,45 @@ class ContinualPipeline(VanillaPipeline):
             step=step,
         )
         writer.put_scalar(name="Continual mean PSNR", scalar=mean_psnr, step=step)
+        if depth is not None and depth.mean_abs_rel is not None:
+            writer.put_scalar(name="Continual mean depth abs rel", scalar=depth.mean_abs_rel, step=step)
         CONSOLE.print(
             f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
-            f"test PSNR per task {_format_row(row_psnr)}, mean {mean_psnr:.2f} dB ({path})"
+            f"test PSNR per task {_format_row(row_psnr)}, mean {mean_psnr:.2f} dB"
+            f"{'' if depth is None else _format_depth(depth)} ({path})"
         )
 
-    def _measure_seen_tasks(self) -> Tuple[List[Optional[float]], List[Optional[float]], float]:
-        """Test PSNR and SSIM of every task released so far (None where none of its test images is left), and the
-        mean PSNR over their test frames (NaN when none is left)."""
+    def _measure_seen_tasks(
+        self,
+    ) -> Tuple[List[Optional[float]], List[Optional[float]], float, Optional[DepthRow]]:
+        """Test PSNR and SSIM of every task released so far (None where none of its test images is left), the mean
+        PSNR over their test frames (NaN when none is left) and, for a capture with depth maps, their depth errors."""
         datamanager = self.datamanager
         seen_frames = datamanager.seen_test_frames()
         available = set(datamanager.eval_dataset.available_frames())
         frames = torch.tensor([frame for frame in seen_frames.tolist() if frame in available], dtype=torch.long)
         seen = range(int(datamanager.test_task_of_frame()[seen_frames].max()) + 1)  # every task when training jointly
+        depth_maps = datamanager.eval_dataset.depth_maps
         if not len(frames):  # a stopped earlier session whose every test image is gone
             self._say_unavailable(list(seen))
-            return [None] * len(seen), [None] * len(seen), float("nan")
+            depth = None if depth_maps is None else DepthRow([None] * len(seen), [None] * len(seen), None, None)
+            return [None] * len(seen), [None] * len(seen), float("nan"), depth
         self.eval()
-        psnr, ssim = evaluate_frames(self.model, datamanager.eval_dataset, frames.tolist(), self.pose_alignment)
+        scores = evaluate_frames(
+            self.model,
+            datamanager.eval_dataset,
+            frames.tolist(),
+            self.pose_alignment,
+            depth_maps,
+            euclidean_depth_maps(self.config.model),
+        )
         self.train()
         tasks = datamanager.test_task_of_frame()[frames]
-        row_psnr = [_mean_or_none(psnr[tasks == j]) for j in seen]
-        row_ssim = [_mean_or_none(ssim[tasks == j]) for j in seen]
+        row_psnr = [_mean_or_none(scores.psnr[tasks == j]) for j in seen]
+        row_ssim = [_mean_or_none(scores.ssim[tasks == j]) for j in seen]
         self._say_unavailable([j for j in seen if row_psnr[j] is None])
-        return row_psnr, row_ssim, float(psnr.mean())
+        depth = None if depth_maps is None else depth_row(scores, tasks, seen)
+        return row_psnr, row_ssim, float(scores.psnr.mean()), depth
 
     def _say_unavailable(self, tasks: List[int]) -> None:
         """Say once that earlier sessions' tasks have no test image left to measure."""
@@ -486,10 +532,18 @@ class ContinualPipeline(VanillaPipeline):
         CONSOLE.print(f"[bold green]Continual results, {state}:")
         CONSOLE.print(f"Per-task test PSNR: {_format_row(self.accuracy.psnr[-1])}")
         CONSOLE.print(f"Mean test PSNR over all test frames: {self.accuracy.mean_psnr[-1]:.2f} dB")
+        if self.accuracy.depth_abs_rel:
+            CONSOLE.print(f"Per-task test depth abs rel: {_format_errors(self.accuracy.depth_abs_rel[-1], '.3f')}")
+            abs_rel, rmse = self.accuracy.mean_depth_abs_rel[-1], self.accuracy.mean_depth_rmse[-1]
+            CONSOLE.print(f"Mean test depth abs rel {_optional(abs_rel, '.3f')}, RMSE {_optional(rmse, '.3f')} m")
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
-        if any(key.startswith(ORACLE_PREFIX) for key in state_dict) and not self.replay_oracle.ready:
+        has_oracle = any(key.startswith(ORACLE_PREFIX) for key in state_dict)
+        if has_oracle and not self.replay_oracle.ready:
             self.replay_oracle.update(self.model)  # builds the copy the saved weights go into
+        elif not has_oracle and self.replay_oracle.ready:
+            # a weights-only checkpoint of a task's end, where the oracle had just become the model
+            state_dict = {**state_dict, **oracle_from_model(state_dict)}
         result = super().load_state_dict(state_dict, strict)
         self._open_frame_parameters(start=False)  # the loaded task continues with the loaded codes and poses
         return result
@@ -540,8 +594,8 @@ class ContinualPipeline(VanillaPipeline):
         if len(self.accuracy.psnr) >= earlier_tasks:
             return
         self.task.current = self.datamanager.released_task = earlier_tasks - 1
-        row_psnr, row_ssim, mean_psnr = self._measure_seen_tasks()
-        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step)
+        row_psnr, row_ssim, mean_psnr, depth = self._measure_seen_tasks()
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step, depth)
 
     def load_earlier_model(self, state: Dict[str, Any], step: int, earlier_rows: int) -> None:
         """Load the model of an earlier session's checkpoint (`state`, at `step`) whose first `earlier_rows` per-frame
@@ -569,13 +623,50 @@ class ContinualPipeline(VanillaPipeline):
         self.datamanager.resume_at(self.task.current)
 
 
+def oracle_from_model(state_dict: Mapping[str, Any]) -> Dict[str, Any]:
+    """The replay oracle's keys of a pipeline state dict, holding the model's weights."""
+    return {ORACLE_PREFIX + key: value for key, value in model_state_of(state_dict).items()}
+
+
 def _format_row(values: List[Optional[float]]) -> str:
     """A row of the accuracy matrix as rich prints it ("n/a": not available)."""
-    return escape("[" + ", ".join("n/a" if value is None else f"{value:.2f}" for value in values) + "] dB")
+    return f"{_format_errors(values, '.2f')} dB"
 
 
 def _mean_or_none(values: torch.Tensor) -> Optional[float]:
     return float(values.mean()) if len(values) else None
+
+
+def _optional(value: Optional[float], spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def _format_errors(values: List[Optional[float]], spec: str) -> str:
+    """A row of values as rich prints it ("n/a": none)."""
+    return escape("[" + ", ".join(_optional(value, spec) for value in values) + "]")
+
+
+def _format_depth(depth: DepthRow) -> str:
+    return (
+        f"; depth abs rel per task {_format_errors(depth.abs_rel, '.3f')}, mean {_optional(depth.mean_abs_rel, '.3f')}"
+        f", RMSE {_optional(depth.mean_rmse, '.3f')} m"
+    )
+
+
+def _mean_of_finite(values: torch.Tensor) -> Optional[float]:
+    """The mean of the values that are not NaN (frames with depth); None when there is none."""
+    finite = values[~torch.isnan(values)]
+    return float(finite.mean()) if len(finite) else None
+
+
+def depth_row(scores: FrameScores, tasks: torch.Tensor, seen: range) -> DepthRow:
+    """The accuracy matrix's depth errors of one row: per task the mean over its test frames with depth."""
+    return DepthRow(
+        abs_rel=[_mean_of_finite(scores.depth_abs_rel[tasks == j]) for j in seen],
+        rmse=[_mean_of_finite(scores.depth_rmse[tasks == j]) for j in seen],
+        mean_abs_rel=_mean_of_finite(scores.depth_abs_rel),
+        mean_rmse=_mean_of_finite(scores.depth_rmse),
+    )
 
 
 def _falling(factor: float, progress: float, start: float) -> float:

@@ -16,6 +16,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.external import TCNN_EXISTS
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.utils.writer import EventName
 from nerfstudio.viewer.viewer import Viewer
@@ -23,17 +24,24 @@ from nerfstudio.viewer.viewer import Viewer
 from continual_nerf.atomic_files import describe, os_error_of, remove_stale_partials
 from continual_nerf.checkpoints import (
     check_method,
+    check_resumable,
     checkpoint_steps,
     find_checkpoint,
     read_checkpoint,
     restore_rng_states,
     rng_states,
     save_checkpoint_file,
+    slim_checkpoint,
 )
 from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
-from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME
-from continual_nerf.core.continual_pipeline import CONTINUE_OPTION, ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_pipeline import (
+    CONTINUE_OPTION,
+    ORACLE_PREFIX,
+    ContinualPipeline,
+    ContinualPipelineConfig,
+)
 from continual_nerf.core.sessions import (
     SESSIONS_FILENAME,
     checkpoint_record,
@@ -45,10 +53,14 @@ from continual_nerf.errors import CheckpointError, ContinualConfigError, Continu
 from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.nerfstudio_compat import (
     DeferredPauseTrainer,
+    count_progress_to,
     first_step,
+    forget_empty_profile,
     launch_processes_here,
     leave_pause,
+    quiet_nerfstudio_warnings,
     set_resume_step,
+    stop_rendering_at_exit,
     viewer_answering_when_ready,
 )
 from continual_nerf.run_lock import claim_run_folder, release_run_folder
@@ -81,6 +93,12 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         if self.start_paused and self.several_processes:
             # the other processes would wait for rank 0's first step in a collective that times out
             raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
+        if self.machine.device_type == "cuda" and not torch.cuda.is_available():
+            # as nerfstudio, no silent change of device: a CPU run of the default budget takes hours, not minutes
+            raise ContinualConfigError(
+                "--machine.device-type cuda (the default): torch finds no CUDA GPU here; add --machine.device-type cpu "
+                "to train on the CPU"
+            )
 
     @property
     def several_processes(self) -> bool:
@@ -88,8 +106,34 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         return self.machine.num_devices * self.machine.num_machines > 1
 
     def setup(self, **kwargs: Any) -> Any:
-        with one_line_exit(self.method_name):
-            return super().setup(**kwargs)
+        INTERRUPTS.install()  # Ctrl-C while nerfstudio's Trainer starts: no traceback either
+        try:
+            with one_line_exit(self.method_name):
+                return super().setup(**kwargs)
+        finally:
+            INTERRUPTS.restore()
+
+    def print_to_terminal(self) -> None:
+        """What the run does and where it writes, in two lines: nerfstudio's dump of every option (~250 lines) stays in
+        the run folder's config.yml.
+
+        ns-train calls this first, before it saves the config and starts training: from here to the end of the
+        process Ctrl-C ends the run with one line, never a traceback.
+        """
+        INTERRUPTS.install()
+        datamanager = self.pipeline.datamanager
+        processes = self.machine.num_devices * self.machine.num_machines
+        device = self.machine.device_type + (f" x {processes} processes" if processes > 1 else "")
+        stops = "" if self.max_num_iterations is None else f", at most {self.max_num_iterations} iterations"
+        folder = datamanager.data or getattr(
+            datamanager.dataparser, "data", None
+        )  # ns-train's --data, else the parser's
+        data = ", ".join(str(part) for part in (dataparser_name(datamanager.dataparser), folder) if part)
+        for line in (
+            f"{self.method_name}: {datamanager.describe_tasks()}{stops} on {device}; data: {data}",
+            f"Run folder: {self.get_base_dir()} (config.yml there holds every option)",
+        ):
+            CONSOLE.print(line, markup=False, soft_wrap=True)
 
     def resume_source(self) -> Optional[Path]:
         """The run folder this run resumes (or continues) from, if any."""
@@ -135,8 +179,11 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         `ns-train` calls this just before it starts its processes: with several, they go through the plugin's worker
         (CPU processes, one-line errors), and the run folder is machine 0's alone (process 0 writes it).
         """
+        quiet_nerfstudio_warnings(on_cpu=self.machine.device_type == "cpu")  # and in the processes ns-train starts
+        with one_line_exit(self.method_name):
+            self.validate()  # before the run folder is made: a run that cannot start leaves nothing behind
         if self.several_processes:
-            launch_processes_here()
+            launch_processes_here(self.mark_failed)
         if self.machine.machine_rank > 0:
             return
         base_dir, source = self.get_base_dir(), self.resume_source()
@@ -160,12 +207,31 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
             for stale in remove_stale_partials(folder) if folder is not None else []:
                 CONSOLE.print(f"Removed {stale}, left by a save that was killed", markup=False, soft_wrap=True)
 
+    def mark_failed(self) -> None:
+        """Say in the run folder that the run ended by an error when a process died without saying so (killed)."""
+        path = self.get_base_dir() / ACCURACY_MATRIX_FILENAME
+        if self.machine.machine_rank > 0 or not path.is_file():
+            return
+        accuracy = AccuracyMatrix.read(path)
+        if accuracy.status == "training":
+            accuracy.status = "failed"
+            with contextlib.suppress(OutputError):  # a full disk may refuse this too: the error is what matters
+                accuracy.write(self.get_base_dir())
+
     def _holds_another_run(self, base_dir: Path, source: Optional[Path]) -> bool:
         """Whether `base_dir` holds results of a run this one does not continue."""
         holds_a_run = (base_dir / ACCURACY_MATRIX_FILENAME).exists() or (
             self.get_checkpoint_dir().is_dir() and bool(checkpoint_steps(self.get_checkpoint_dir()))
         )
         return holds_a_run and not (source is not None and source.resolve() == base_dir.resolve())
+
+
+def dataparser_name(dataparser: Any) -> str:
+    """The name `ns-train` knows a dataparser by (continual-demo, ...)."""
+    from nerfstudio.configs.dataparser_configs import all_dataparsers  # discovers the plugins, this one among them
+
+    names = [name for name, config in all_dataparsers.items() if type(config) is type(dataparser)]
+    return names[0] if names else type(dataparser).__name__
 
 
 @contextlib.contextmanager
@@ -192,19 +258,30 @@ class ContinualTrainer(DeferredPauseTrainer):
     pipeline: ContinualPipeline
 
     def __init__(self, config: ContinualTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        quiet_nerfstudio_warnings(on_cpu=config.machine.device_type == "cpu")
+        if not distributed.is_main():
+            CONSOLE.quiet = True  # every process would print the same lines: rank 0 speaks for the run
         super().__init__(config, local_rank, world_size)
         self._resumed_from: Optional[Path] = None
         """The checkpoint folder this run resumed from, if any."""
+        self._last_trained_step: Optional[int] = None
+        """The last step this process trained, once one is."""
+        self._saved_step: Optional[int] = None
+        """The step of the last checkpoint this process saved."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         INTERRUPTS.install()  # Ctrl-C while setting up (waiting for a capture's first task, ...): no traceback
         try:
             self._set_up(test_mode)
+        except BaseException:
+            forget_empty_profile()  # ended before training: nothing to report but why it ended
+            raise
         finally:
             INTERRUPTS.restore()  # train() installs them again: a trainer only set up leaves no handler behind
         location = TrainingCallbackLocation
         self.callbacks += [
             TrainingCallback([location.BEFORE_TRAIN_ITERATION], self._answer_interrupt),
+            TrainingCallback([location.AFTER_TRAIN_ITERATION], self._count_trained_step),
             TrainingCallback([location.AFTER_TRAIN], self._after_last_step),
         ]
         if distributed.is_distributed():  # after the panel's: a pause it starts at a task's end holds every rank
@@ -215,6 +292,7 @@ class ContinualTrainer(DeferredPauseTrainer):
             )
 
     def _set_up(self, test_mode: Literal["test", "val", "inference"]) -> None:
+        self._use_torch_without_tiny_cuda_nn()
         self.config.max_num_iterations = self._iterations_to_run()
         if self.config.max_num_iterations == UNBOUNDED_ITERATIONS:  # no end known: an ETA would count to the cap
             writer_config = self.config.logging.local_writer
@@ -225,6 +303,8 @@ class ContinualTrainer(DeferredPauseTrainer):
         with viewer_answering_when_ready():  # the page answers once it shows what extend_viewer adds
             with one_line_exit(self.config.method_name):
                 super().setup(test_mode)
+            # a resumed run's loop counts its iterations from the resumed step: % done and ETA count to the run's end
+            count_progress_to(first_step(self) + self.config.max_num_iterations)
             if isinstance(self.viewer_state, Viewer) and not distributed.is_main():
                 # nerfstudio starts a viewer in the first process of every machine; rank 0's alone is fed and obeyed
                 self.viewer_state.viser_server.stop()
@@ -237,6 +317,22 @@ class ContinualTrainer(DeferredPauseTrainer):
             progress=lambda part: self.show_stage(f"compiling the model (torch.compile), {part}"),
         )
         self.show_stage(f"reading task {self.pipeline.task.current + 1}'s images")
+
+    def _use_torch_without_tiny_cuda_nn(self) -> None:
+        """Build the model's hash grids and MLPs in torch when tiny-cuda-nn is not installed, as nerfstudio falls back
+        to, without its warning block per module and model (twelve in a run: the replay oracle is a second model);
+        on a GPU, one line says what installing it would bring."""
+        model = self.config.pipeline.model
+        if getattr(model, "implementation", None) != "tcnn" or TCNN_EXISTS:
+            return
+        if self.device.startswith("cuda") and distributed.is_main():
+            CONSOLE.print(
+                "tiny-cuda-nn is not installed: the hash grids and MLPs run in torch (pip install "
+                "git+https://github.com/NVlabs/tiny-cuda-nn/#subdirectory=bindings/torch for its fused kernels)",
+                markup=False,
+                soft_wrap=True,
+            )
+        model.implementation = "torch"  # type: ignore[attr-defined]
 
     def extend_viewer(self, viewer: Viewer) -> None:
         """Add to nerfstudio's viewer before its page first answers (the viewer's trainer adds the continual panel)."""
@@ -251,6 +347,8 @@ class ContinualTrainer(DeferredPauseTrainer):
         return distributed.is_distributed()
 
     def _check_viewer_warnings(self) -> None:
+        if isinstance(self.viewer_state, Viewer):  # nerfstudio calls this right after the viewer starts
+            stop_rendering_at_exit(self.viewer_state)
         # nerfstudio's note says no evaluation runs with the viewer alone: its periodic evaluation does not, but the
         # accuracy matrix is measured at the end of every task whatever --vis says
         if self.config.is_viewer_enabled() and not self.config.is_tensorboard_enabled():
@@ -281,6 +379,7 @@ class ContinualTrainer(DeferredPauseTrainer):
         finally:
             INTERRUPTS.restore()
             release_run_folder(self.base_dir)
+            forget_empty_profile()
 
     def _answer_interrupt(self, step: int) -> None:
         """If a signal came during the last iteration: checkpoint that step, mark the run interrupted, say how to
@@ -308,6 +407,17 @@ class ContinualTrainer(DeferredPauseTrainer):
             flush=True,
         )
         raise SystemExit(EXIT_CODES[number])
+
+    def _count_trained_step(self, step: int) -> None:
+        self._last_trained_step = step
+
+    def _after_train(self) -> None:
+        # when the pipeline stops the loop (the last task done before --max-num-iterations, or a capture's end), the
+        # loop has moved `step` on to a step it never trains: the final checkpoint and the step shown are the last one
+        # trained
+        trained = self._last_trained_step
+        self.step = trained if trained is not None else first_step(self) - 1
+        super()._after_train()
 
     def _after_last_step(self, step: int) -> None:
         """Training is over and saved: from now on a signal (the viewer may stay open) ends the process at once."""
@@ -354,6 +464,7 @@ class ContinualTrainer(DeferredPauseTrainer):
                 "add --pipeline.continue-with-new-capture True)"
             )
         self._check_budget_reaches(state["step"], path)
+        check_resumable(state, path, find_checkpoint(path.parent, None))
         if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
             restore_rng_states(state["rng"])
         set_resume_step(self, state["step"] + 1)
@@ -366,6 +477,7 @@ class ContinualTrainer(DeferredPauseTrainer):
         """Start this capture's tasks after the checkpoint's: its model, optimizers and random generators go on as if
         the captures were one, the model the replay oracle of every earlier task."""
         pipeline, datamanager = self.pipeline, self.pipeline.datamanager
+        check_resumable(state, path, find_checkpoint(path.parent, None))  # a closed task's weights alone go on no run
         record = checkpoint_record(state, path)
         assert record is not None, "record_earlier_sessions read it"
         if same_capture(record, datamanager.train_dataparser_outputs.image_filenames[record.num_frames :]):
@@ -428,13 +540,30 @@ class ContinualTrainer(DeferredPauseTrainer):
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete."""
+        """nerfstudio's checkpoint (file name and keys) plus the RNG states, renamed into place once complete. The one
+        saved before it keeps the model's weights alone if its step ended a task (the run viewer's task slider and
+        ns-eval read those), and goes if it did not: only the latest is needed to resume."""
+        if step == self._saved_step or step < first_step(self):
+            return  # saved at its task's end already, or no step trained since the run started or resumed
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         save_checkpoint_file(self.checkpoint_state(step), path)
         if self.config.save_only_latest_checkpoint:
             for older in checkpoint_steps(self.checkpoint_dir).values():
                 if older != path:
                     older.unlink()
+        elif self._saved_step is not None:
+            self._keep_weights_only(self._saved_step)
+        self._saved_step = step
+
+    def _keep_weights_only(self, step: int) -> None:
+        """The checkpoint of `step`, superseded: weights only where a task ended there, removed elsewhere."""
+        older = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        if not older.exists():
+            return
+        if step in self.pipeline.accuracy.steps:
+            slim_checkpoint(older, ORACLE_PREFIX)
+        else:
+            older.unlink()
 
     def checkpoint_state(self, step: int) -> Dict[str, Any]:
         return {

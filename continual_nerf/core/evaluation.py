@@ -1,4 +1,5 @@
-"""PSNR and SSIM of a model on held-out test frames, optionally after fitting each test frame's pose to its image.
+"""PSNR and SSIM of a model on held-out test frames (and the rendered depth's error where the capture has depth maps),
+optionally after fitting each test frame's pose to its image.
 
 A capture whose poses carry errors of their own per image (COLMAP registers every image on its own) gives its test
 frames errors no training frame shares: a render from the given pose then measures the pose error as much as the
@@ -10,6 +11,7 @@ pose.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple
 
@@ -23,6 +25,7 @@ from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from continual_nerf.compilation import input_gradients
+from continual_nerf.core.depth_maps import DepthMaps, depth_errors, directions_norm
 from continual_nerf.nerfstudio_compat import proposal_sampler_state, set_proposal_sampler_state
 
 
@@ -38,23 +41,57 @@ class PoseAlignment:
     """Starting rate, falling to a tenth over the steps."""
 
 
+@dataclass(frozen=True)
+class FrameScores:
+    """Per test frame: PSNR (dB), SSIM and the rendered z-depth's errors (NaN for a frame without depth)."""
+
+    psnr: Tensor
+    ssim: Tensor
+    depth_abs_rel: Tensor
+    depth_rmse: Tensor
+    """Metres."""
+
+
 @torch.no_grad()
 def evaluate_frames(
-    model: Model, dataset: InputDataset, frames: List[int], alignment: Optional[PoseAlignment] = None
-) -> Tuple[torch.Tensor, torch.Tensor]:
+    model: Model,
+    dataset: InputDataset,
+    frames: List[int],
+    alignment: Optional[PoseAlignment] = None,
+    depth_maps: Optional[DepthMaps] = None,
+    euclidean_depth: bool = False,
+) -> FrameScores:
     """Per-frame PSNR (dB) and SSIM of full renders of `frames` against their images, each from its pose fitted to
-    its image first when `alignment` is given."""
-    psnrs, ssims = [], []
+    its image first when `alignment` is given; and the rendered depth's errors against `depth_maps`, when given (which
+    hold z-depth, or distances along rays when `euclidean_depth`)."""
+    psnrs, ssims, depth_scores = [], [], []
     for frame in frames:
         camera = dataset.cameras[frame : frame + 1].to(model.device)
         truth = dataset.get_image_float32(frame)[..., :3].to(model.device)
         if alignment is not None and alignment.steps > 0:
             camera = aligned_camera(model, camera, truth, alignment, seed=frame)
-        rendered = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
+        outputs = model.get_outputs_for_camera(camera)
+        rendered = outputs["rgb"].clamp(0, 1)
         rendered, truth = rendered.permute(2, 0, 1)[None], truth.permute(2, 0, 1)[None]
         psnrs.append(peak_signal_noise_ratio(rendered, truth, data_range=1.0))
         ssims.append(structural_similarity_index_measure(rendered, truth, data_range=1.0))
-    return torch.stack(psnrs).cpu(), torch.stack(ssims).cpu()
+        depth_scores.append(frame_depth_errors(outputs, camera, depth_maps, frame, euclidean_depth))
+    depth = torch.tensor(depth_scores, dtype=torch.float64).view(-1, 2)
+    return FrameScores(torch.stack(psnrs).cpu(), torch.stack(ssims).cpu(), depth[:, 0], depth[:, 1])
+
+
+def frame_depth_errors(
+    outputs: Dict[str, Tensor], camera: Cameras, depth_maps: Optional[DepthMaps], frame: int, euclidean: bool = False
+) -> Tuple[float, float]:
+    """Absolute relative error and RMSE (metres) of the frame's rendered depth (NaN without depth maps or a depth
+    output: the vanilla NeRF's is depth_fine)."""
+    rendered = outputs.get("depth", outputs.get("depth_fine"))
+    if depth_maps is None or rendered is None:
+        return math.nan, math.nan
+    if not euclidean:  # nerfstudio renders distance along unit rays; the ray's direction norm turns it into z-depth
+        rendered = rendered / directions_norm(camera, 0).to(rendered.device)
+    truth = depth_maps.read(frame)[..., None].to(rendered.device)
+    return depth_errors(rendered, truth, depth_maps.metres_per_scene_unit)
 
 
 def aligned_camera(model: Model, camera: Cameras, image: Tensor, alignment: PoseAlignment, seed: int) -> Cameras:

@@ -14,6 +14,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
+from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, depth_errors
 from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, distillation_loss
 from continual_nerf.core.per_frame import (
     FRAME_CAMERA,
@@ -250,6 +251,14 @@ class ContinualNGPModel(NerfactoModel):
     ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
         metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
         del metrics_dict["lpips"]
+        if DEPTH_KEY in batch:  # a capture with depth maps: how far the rendered geometry is from them (ns-eval)
+            metres = float(self.kwargs["metadata"][METRES_PER_SCENE_UNIT])
+            rendered = outputs["depth"]
+            # distances along rays to z-depth, unless the depth maps hold such distances (a depth model's is_euclidean_depth)
+            if not getattr(self.config, "is_euclidean_depth", False):
+                rendered = rendered / batch[DIRECTIONS_NORM].to(rendered.device)
+            truth = batch[DEPTH_KEY].to(rendered.device)
+            metrics_dict["depth_abs_rel"], metrics_dict["depth_rmse"] = depth_errors(rendered, truth, metres)
         return metrics_dict, images_dict
 
     def get_extra_state(self) -> Dict[str, int]:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -10,9 +10,13 @@ from nerfstudio.models.base_model import Model
 from torch import nn
 
 from continual_nerf.compilation import warm_up
+from continual_nerf.core.depth_maps import DIRECTIONS_NORM
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.core.per_frame import TRAINING_FRAME
 from continual_nerf.nerfstudio_compat import sample_rays_as_in_training
+
+MIN_ACCUMULATION = 0.5
+"""Opacity a replayed ray needs for the oracle's rendered depth to be a depth target (distill_replay_depth)."""
 
 
 class ReplayOracle(nn.Module):
@@ -60,15 +64,41 @@ class ReplayOracle(nn.Module):
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
         """Colour (N, 3) the frozen copy renders along each ray, each ray with the appearance code and refined pose of
         the frame it came from, as training rendered that frame."""
-        return self.render_with_distance(ray_bundle)[0]
+        return self.outputs(ray_bundle)["rgb"]
 
     @torch.no_grad()
     def render_with_distance(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
-        """`render`'s colour and the distance (N,) along each ray to the surface the copy renders (its median depth),
-        None for a model that renders no depth."""
+        """`render`'s colour and `surface_distance` along each ray."""
+        outputs = self.outputs(ray_bundle)
+        return outputs["rgb"], surface_distance(outputs)
+
+    @torch.no_grad()
+    def render_with_depth(self, ray_bundle: RayBundle, euclidean: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Colour (N, 3) as `render`, and the `depth_target` (N, 1) of each ray."""
+        outputs = self.outputs(ray_bundle)
+        return outputs["rgb"], depth_target(outputs, ray_bundle, euclidean)
+
+    @torch.no_grad()
+    def outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+        """What the frozen copy renders along each ray (as `render` renders it): its model's outputs."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
         assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
         ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
-        outputs = self.model(ray_bundle)
-        depth = outputs.get("depth")
-        return outputs["rgb"], None if depth is None else depth.view(-1)
+        return self.model(ray_bundle)
+
+
+def surface_distance(outputs: Dict[str, torch.Tensor]) -> Optional[torch.Tensor]:
+    """The distance (N,) along each ray to the surface the oracle renders (its median depth), None for a model that
+    renders no depth."""
+    depth = outputs.get("depth")
+    return None if depth is None else depth.view(-1)
+
+
+def depth_target(outputs: Dict[str, torch.Tensor], ray_bundle: RayBundle, euclidean: bool = False) -> torch.Tensor:
+    """The depth (N, 1) the oracle renders along each ray: its expected depth as z-depth (or, `euclidean`, as distance
+    along the ray, as the depth maps hold it), 0 (no depth target) where less than half of the ray's light comes from
+    a surface it has learned."""
+    depth = outputs["expected_depth"]
+    if not euclidean:
+        depth = depth / ray_bundle.metadata[DIRECTIONS_NORM]
+    return torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, depth, 0.0)

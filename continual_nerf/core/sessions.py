@@ -31,7 +31,7 @@ from continual_nerf.atomic_files import write_atomically
 from continual_nerf.core.task_split import TaskSplit
 from continual_nerf.core.valid_pixels import ValidPixels
 from continual_nerf.errors import CheckpointError, ContinualConfigError, DatasetError
-from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS, HELD_OUT
+from continual_nerf.metadata_keys import DEPTH_FILENAMES, DEPTH_INTRINSICS, FISHEYE_CROP_RADIUS, HELD_OUT
 
 SESSIONS_FILENAME = "earlier_sessions.pt"
 """A continued run's file in its run folder: the earlier sessions' record, read when its datamanager is set up
@@ -351,7 +351,8 @@ def joined(
 ) -> Tuple[DataparserOutputs, TaskSplit]:
     """The trajectory of a continued run: the recorded frames, then the later capture's (`outputs`, in the run's world
     frame, with its own `split`, cameras and capture instants); the per-frame metadata the datamanager reads joined
-    (cameras, capture instants, fisheye circles, test frames), masks None where a frame has none."""
+    (cameras, capture instants, fisheye circles, test frames, depth maps), masks and depth maps None where a frame has
+    none (the earlier sessions' depth maps are not recorded)."""
     earlier_count = record.num_frames
     cameras = outputs.cameras
     distortion = _joined_optional(record.distortion_params, cameras.distortion_params, earlier_count, len(cameras))
@@ -378,6 +379,12 @@ def joined(
     metadata[HELD_OUT] = held_out
     if radius is not None:
         metadata[FISHEYE_CROP_RADIUS] = radius
+    depth_filenames = outputs.metadata.get(DEPTH_FILENAMES)
+    if depth_filenames is not None:
+        metadata[DEPTH_FILENAMES] = [None] * earlier_count + list(depth_filenames)
+    depth_intrinsics = _joined_optional(None, outputs.metadata.get(DEPTH_INTRINSICS), earlier_count, len(cameras))
+    if depth_intrinsics is not None:
+        metadata[DEPTH_INTRINSICS] = depth_intrinsics
     masks = outputs.mask_filenames
     joined_outputs = dataclasses.replace(
         outputs,

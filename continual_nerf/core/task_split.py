@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 
-from continual_nerf.errors import ContinualConfigError
+from continual_nerf.errors import ContinualConfigError, plural
 from continual_nerf.metadata_keys import HELD_OUT
 
 
@@ -46,6 +46,7 @@ def split_into_tasks(
     test_interval: int,
     time_group: Optional[np.ndarray] = None,
     held_out: Optional[np.ndarray] = None,
+    source: str = "the capture",
 ) -> TaskSplit:
     """Cut frames 0..num_frames-1 into num_tasks contiguous spans of near-equal length.
 
@@ -54,19 +55,17 @@ def split_into_tasks(
     With `time_group` (frames captured at the same instant by several cameras share a value, in
     capture order), spans and held-out frames are counted in instants: a task holds every camera's
     images of its time span and a held-out instant is held out in every camera. With `held_out`
-    (a flag per frame) the flagged frames are the test frames, and every task needs one.
+    (a flag per frame) the flagged frames are the test frames, and every task needs one. `source` names the capture
+    in errors.
     """
     if num_frames < 1:
         raise ContinualConfigError("the dataset has no frames: nothing to split into tasks")
     groups = np.arange(num_frames) if time_group is None else np.unique(np.asarray(time_group), return_inverse=True)[1]
     spans = np.array_split(np.arange(groups.max() + 1), num_tasks)
-    for span in spans:
-        if len(span) < 2:
-            raise ContinualConfigError(
-                f"--pipeline.datamanager.num-tasks {num_tasks} is too large for {len(groups)} frames"
-                f"{'' if time_group is None else f' ({groups.max() + 1} instants)'}: "
-                "a task needs at least one training and one test frame"
-            )
+    if min(len(span) for span in spans) < 2:
+        raise ContinualConfigError(
+            too_few_for_tasks(source, num_tasks, num_frames, None if time_group is None else int(groups.max()) + 1)
+        )
     if held_out is None:
         tested = np.isin(groups, np.concatenate([span[::test_interval] for span in spans]))
     else:
@@ -85,8 +84,23 @@ def split_into_tasks(
     return TaskSplit(train_frames=tuple(train), test_frames=tuple(test))
 
 
-def split_capture(outputs: DataparserOutputs, num_tasks: int, test_interval: int) -> TaskSplit:
-    """`split_into_tasks` of a dataparser's frames, with the rig instants and test frames its metadata names."""
+def too_few_for_tasks(source: str, num_tasks: int, num_frames: int, instants: Optional[int]) -> str:
+    """Why `num_frames` frames (taken at `instants` rig instants, if a rig took them) cannot form `num_tasks` tasks."""
+    unit, count = ("frame", num_frames) if instants is None else ("rig instant", instants)
+    held = plural(count, unit) + ("" if instants is None else f" ({plural(num_frames, 'image')})")
+    most = count // 2
+    advice = f"use at most {plural(most, 'task')}" if most else "too few for any task"
+    return (
+        f"{source}: {held} {'is' if count == 1 else 'are'} too few for --pipeline.datamanager.num-tasks {num_tasks}: "
+        f"a task needs 2 {unit}s, one to train on and one to test on; {advice}"
+    )
+
+
+def split_capture(
+    outputs: DataparserOutputs, num_tasks: int, test_interval: int, source: str = "the capture"
+) -> TaskSplit:
+    """`split_into_tasks` of a dataparser's frames, with the rig instants and test frames its metadata names;
+    `source` names the capture in errors."""
     metadata = outputs.metadata
     return split_into_tasks(
         len(outputs.image_filenames),
@@ -94,6 +108,7 @@ def split_capture(outputs: DataparserOutputs, num_tasks: int, test_interval: int
         test_interval,
         time_group=metadata.get("time_group"),
         held_out=metadata.get(HELD_OUT),
+        source=source,
     )
 
 

@@ -20,7 +20,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image, UnidentifiedImageError
 
 from continual_nerf.errors import ContinualConfigError, DatasetError
-from continual_nerf.metadata_keys import FISHEYE_CROP_RADIUS, HELD_OUT
+from continual_nerf.metadata_keys import (
+    DEPTH_FILENAMES,
+    DEPTH_INTRINSICS,
+    DEPTH_UNIT_SCALE_FACTOR,
+    FISHEYE_CROP_RADIUS,
+    HELD_OUT,
+)
 from continual_nerf.validated_config import ValidatedConfig
 
 OrientationMethod = Literal["pca", "up", "vertical", "none"]
@@ -105,6 +111,13 @@ class CaptureFrames:
     images' size before --downscale-factor (None: every image trains whole)."""
     held_out: Optional[np.ndarray] = None
     """(N,) bool, the images the capture names for testing only (None: the datamanager holds out every n-th)."""
+    depth_filenames: Optional[List[Optional[Path]]] = None
+    """Per image its depth map (z-depth), None for an image that has none (None: the capture has no depth)."""
+    depth_intrinsics: Optional[np.ndarray] = None
+    """(N, 6) fx, fy, cx, cy, width, height of each image's depth camera (None: the depth maps share the colour
+    camera's intrinsics, scaled to their size)."""
+    depth_unit_scale_factor: float = 1.0
+    """Metres one unit of the depth maps is (ScanNet's millimetres: 1e-3, TUM's: 1/5000)."""
 
     def __len__(self) -> int:
         return len(self.image_filenames)
@@ -116,11 +129,20 @@ class CaptureFrames:
         }
         optional = {
             name: None if getattr(self, name) is None else getattr(self, name)[keep]
-            for name in ("distortion", "time_group", "camera_id", "camera_type", "fisheye_crop_radius", "held_out")
-        }
+            for name in (
+                "distortion", "time_group", "camera_id", "camera_type", "fisheye_crop_radius", "held_out",
+                "depth_intrinsics",
+            )
+        }  # fmt: skip
         masks = None if self.mask_filenames is None else [self.mask_filenames[i] for i in keep]
+        depths = None if self.depth_filenames is None else [self.depth_filenames[i] for i in keep]
         return replace(
-            self, image_filenames=[self.image_filenames[i] for i in keep], mask_filenames=masks, **optional, **picked
+            self,
+            image_filenames=[self.image_filenames[i] for i in keep],
+            mask_filenames=masks,
+            depth_filenames=depths,
+            **optional,
+            **picked,
         )
 
 
@@ -245,7 +267,7 @@ def capture_outputs(frames: CaptureFrames, config: CaptureDataParserConfig) -> D
     )
     masked = "" if frames.mask_filenames is None else ", each with its mask"
     tested = "" if frames.held_out is None else f", {int(frames.held_out.sum())} of them named for testing"
-    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{tested}{masked}{cropped(frames)}")
+    CONSOLE.log(f"{config.data}: {len(frames)} frames in capture order{tested}{masked}{cropped(frames)}{depth(frames)}")
     return CaptureOutputs(
         image_filenames=frames.image_filenames,
         mask_filenames=frames.mask_filenames,
@@ -268,9 +290,18 @@ def cropped(frames: CaptureFrames) -> str:
     )
 
 
+def depth(frames: CaptureFrames) -> str:
+    """What the log says of the frames' depth maps."""
+    if frames.depth_filenames is None:
+        return ""
+    count = sum(filename is not None for filename in frames.depth_filenames)
+    return f", {count} with a depth map" if count < len(frames) else ", each with its depth map"
+
+
 def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[str, Any]:
     """What the continual datamanager reads besides cameras: the image downscale, the capture instants, which
-    camera took each image, the fisheye circles its pixels train within and the images named for testing."""
+    camera took each image, the fisheye circles its pixels train within, the images named for testing and the depth
+    maps."""
     metadata: Dict[str, Any] = {"image_scale_factor": 1.0 / config.downscale_factor}
     for key in ("time_group", "camera_id"):
         value = getattr(frames, key)
@@ -280,4 +311,9 @@ def _metadata(frames: CaptureFrames, config: CaptureDataParserConfig) -> Dict[st
         metadata[FISHEYE_CROP_RADIUS] = torch.from_numpy(frames.fisheye_crop_radius).double()
     if frames.held_out is not None:
         metadata[HELD_OUT] = torch.from_numpy(frames.held_out).bool()
+    if frames.depth_filenames is not None:
+        metadata[DEPTH_FILENAMES] = frames.depth_filenames
+        metadata[DEPTH_UNIT_SCALE_FACTOR] = frames.depth_unit_scale_factor
+    if frames.depth_intrinsics is not None:
+        metadata[DEPTH_INTRINSICS] = torch.from_numpy(frames.depth_intrinsics).double()
     return metadata

@@ -14,6 +14,11 @@ The capture protocol (what `continual-nerf-replay-capture` writes, and what a li
 Names that start with a dot or do not end in .json, .task or .end are ignored. A JSON that does not parse, or whose
 image does not decode yet, is retried on the next poll and the entries after it wait, so capture order is kept.
 
+The training run answers in one file of its own, `.training`: the number (0-based) of the task it trains, rewritten
+whenever a task starts training. A capture process may pace itself by it (`continual-nerf-replay-capture
+--wait-for-training` writes a task's frames once the task before it trains); a folder the run cannot write into
+simply gets no answer.
+
 The folder is another process's output and is read as untrusted input: only regular files whose real path lies
 inside the folder are opened (no absolute `file_path`, no `..` out of it, no symlink leading elsewhere, no FIFO), and
 a frame that can never be used (such a path, an image too large to decode, JSON over 1 MiB or nested too deeply,
@@ -23,6 +28,7 @@ skipped with one warning line naming it; training goes on.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -49,6 +55,9 @@ if TYPE_CHECKING:
 
 MAX_FRAME_JSON_BYTES = 1 << 20
 """A frame JSON holds a few hundred bytes; a larger file is not read into memory."""
+
+TRAINING_FILE = ".training"
+"""The file in the capture folder where the training run says which task it trains (a dot name: never an entry)."""
 
 ENTRY_RANK = {".json": 0, ".task": 1, ".end": 2}
 """Entry kinds by file suffix; at equal sequence numbers a frame comes before the marker that follows it."""
@@ -82,6 +91,28 @@ class StreamMarker:
 
 class NotReady(Exception):
     """An entry that is still being written: read again on the next poll."""
+
+
+def announce_training(folder: Path, task: int) -> None:
+    """Say in `folder`'s TRAINING_FILE that task `task` trains now; the folder is another process's, so no existing
+    name is written through (a symlink there is replaced, not followed), and a folder that refuses it is left as is."""
+    temporary = folder / f"{TRAINING_FILE}.{os.getpid()}.tmp"
+    try:
+        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+        with os.fdopen(descriptor, "w") as file:
+            file.write(f"{task}\n")
+        os.replace(temporary, folder / TRAINING_FILE)
+    except OSError:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+
+
+def trained_task(folder: Path) -> Optional[int]:
+    """The task a training run on `folder` says it trains, if it said one."""
+    try:
+        return int((folder / TRAINING_FILE).read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def check_image(image: Path, folder: Path, intrinsics: np.ndarray) -> None:

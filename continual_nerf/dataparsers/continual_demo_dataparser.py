@@ -1,15 +1,17 @@
-"""`continual-demo`: a procedurally generated room with exact poses, rendered once and cached on disk; optionally
-with what a real capture adds (exposure changes, camera colour responses, pose errors: `demo_capture.py`)."""
+"""`continual-demo`: a procedurally generated room with exact poses and exact depth, rendered once and cached on disk;
+optionally with what a real capture adds (exposure changes, camera colour responses, pose errors, a depth sensor's
+flaws: `demo_capture.py`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Literal, Optional, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Type
 
 import numpy as np
 import torch
@@ -19,8 +21,9 @@ from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
 from continual_nerf.dataparsers import demo_capture, demo_scene, demo_street
-from continual_nerf.dataparsers.demo_capture import PoseNoiseKind
+from continual_nerf.dataparsers.demo_capture import DepthSensor, PoseNoiseKind
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.metadata_keys import DEPTH_FILENAMES, DEPTH_UNIT_SCALE_FACTOR
 from continual_nerf.validated_config import ValidatedConfig
 
 DemoScene = Literal["room", "street", "rooms", "long-street"]
@@ -83,6 +86,17 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     """First capture instant returned: a capture cut into sessions (instants before it belong to an earlier one)."""
     end_instant: Optional[int] = None
     """Capture instant the returned frames stop before (None: the end of the path)."""
+    depth_noise: float = 0.0
+    """Depth maps with a sensor's noise: its standard deviation in metres at 1 m, growing with the square of the depth
+    (a Kinect: about 0.0015); 0: exact depth."""
+    depth_max_range: float = math.inf
+    """Metres beyond which the depth maps hold no depth (0), as a sensor's range ends (Kinect, Structure Sensor: 4 to
+    5 m); inf: no limit."""
+    depth_edge_holes: int = 0
+    """Pixels on either side of a depth discontinuity (an object's edge) without depth (0), as structured-light
+    sensors leave them."""
+    depth_dropout: float = 0.0
+    """Share of pixels without depth (0), at random."""
 
     def validate(self) -> None:
         super().validate()
@@ -103,12 +117,16 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
                 f"continual-demo --start-instant {self.start_instant} --end-instant {self.end_instant}: must cut a part "
                 f"of the capture's {instants} instants (0 <= start < end <= {instants})"
             )
-        for name in ("pose_noise_degrees", "pose_noise_translation"):
+        for name in ("pose_noise_degrees", "pose_noise_translation", "depth_noise", "depth_edge_holes"):
             value = getattr(self, name)
-            if value < 0:
+            if not value >= 0:
                 raise ContinualConfigError(
                     f"continual-demo --{name.replace('_', '-')} must not be negative, got {value}"
                 )
+        if not self.depth_max_range > 0:
+            raise ContinualConfigError(f"continual-demo --depth-max-range must be positive, got {self.depth_max_range}")
+        if not 0 <= self.depth_dropout < 1:
+            raise ContinualConfigError(f"continual-demo --depth-dropout must be in [0, 1), got {self.depth_dropout}")
 
     @property
     def frames(self) -> int:
@@ -119,6 +137,11 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     def changes_colour(self) -> bool:
         """Whether the images differ from the exact renders (exposure or camera responses)."""
         return self.exposure_strength > 0 or self.camera_response_strength > 0
+
+    @property
+    def depth_sensor(self) -> DepthSensor:
+        """The flaws the depth maps have (none: exact depth)."""
+        return DepthSensor(self.depth_noise, self.depth_max_range, self.depth_edge_holes, self.depth_dropout)
 
 
 @dataclass(frozen=True)
@@ -228,6 +251,22 @@ class ContinualDemoDataParser(DataParser):
         transforms = {"fl_x": focal, "fl_y": focal, "cx": c.width / 2, "cy": c.height / 2, "w": c.width, "h": c.height}
         (folder / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}, indent=1))
 
+    def _render_depth(self, folder: Path, capture: DemoCapture) -> None:
+        """Every frame's z-depth in metres as --depth-* says the sensor records it, frame_<i>.npy in `folder`."""
+        c = self.config
+        folder.mkdir(parents=True)
+        focal = self._focal()
+        rng = demo_capture.effect_rng(c.seed, demo_capture.DEPTH_STREAM)
+        for i, c2w in enumerate(capture.poses):
+            exact = demo_scene.render_depth(
+                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene_of(i)
+            )
+            depth = exact if c.depth_sensor.exact else demo_capture.sensed_depth(exact, c.depth_sensor, rng)
+            np.save(folder / f"frame_{i:05d}.npy", depth)
+
+    def _depth_folder(self, scene_folder: Path) -> Path:
+        return scene_folder / "_".join(filter(None, ("depth", self.config.depth_sensor.name())))
+
     def _captured_folder(self, scene_folder: Path) -> Path:
         c = self.config
         exposure = f"exposure{c.exposure_strength:g}x{c.exposure_segments}" if c.exposure_strength > 0 else ""
@@ -285,6 +324,9 @@ class ContinualDemoDataParser(DataParser):
             images = self._captured_folder(folder)
             if not images.exists():
                 write_folder(images, lambda partial: self._write_captured_images(folder, partial, capture))
+        depth = self._depth_folder(folder)
+        if not depth.exists():  # a scene rendered before the demo had depth gets it now, its images kept
+            write_folder(depth, lambda partial: self._render_depth(partial, capture))
         centre = (scene.lo + scene.hi) / 2
         scale = 2.0 / float((scene.hi - scene.lo).max())  # the scene's longest side spans nerfstudio's [-1, 1] box
         kept = self.returned_frames(capture)
@@ -308,13 +350,16 @@ class ContinualDemoDataParser(DataParser):
         transform = torch.eye(4)[:3]
         transform[:, 3] = torch.from_numpy(-centre).float()
         rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene in RIGS else {}
+        metadata: Dict[str, Any] = {key: torch.from_numpy(value).long() for key, value in rig.items()}
+        metadata[DEPTH_FILENAMES] = [depth / f"frame_{i:05d}.npy" for i in kept]
+        metadata[DEPTH_UNIT_SCALE_FACTOR] = 1.0  # metres
         return DataparserOutputs(
             image_filenames=[images / f"frame_{i:05d}.png" for i in kept],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
             dataparser_scale=scale,
-            metadata={key: torch.from_numpy(value).long() for key, value in rig.items()},
+            metadata=metadata,
         )
 
 

@@ -1,5 +1,5 @@
 """What a real capture adds to the demo's exact renders: exposure and white balance that change along the capture,
-cameras of a rig that respond to colour differently, and poses that are slightly wrong.
+cameras of a rig that respond to colour differently, poses that are slightly wrong, and a depth sensor's flaws.
 
 Each effect draws from its own random stream (seeded by the scene's seed and the effect), so an effect that is off
 draws nothing and the scene, its path and the other effects stay as they are.
@@ -7,13 +7,16 @@ draws nothing and the scene, its path and the other effects stay as they are.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
-EXPOSURE_STREAM, RESPONSE_STREAM, POSE_STREAM = 1, 2, 3
+EXPOSURE_STREAM, RESPONSE_STREAM, POSE_STREAM, DEPTH_STREAM = 1, 2, 3, 4
 """Random streams of the effects: numpy.random.default_rng([seed, stream])."""
+EDGE_JUMP = 0.05
+"""Relative depth difference between neighbouring pixels from which a depth sensor sees a discontinuity."""
 TINT_SHARE = 1 / 3
 """White balance changes by this share of the exposure strength per channel."""
 DRIFT_SHARE = 1 / 5
@@ -134,3 +137,59 @@ def pose_errors(estimated: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np
     relative = np.swapaxes(true[:, :, :3], 1, 2) @ estimated[:, :, :3]
     cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
     return np.rad2deg(np.arccos(cosine)), np.linalg.norm(estimated[:, :, 3] - true[:, :, 3], axis=-1)
+
+
+@dataclass(frozen=True)
+class DepthSensor:
+    """The flaws of a structured-light or time-of-flight depth sensor (Kinect, Structure Sensor); none by default."""
+
+    noise: float = 0.0
+    """Standard deviation (metres) of the depth error at 1 m; it grows with the square of the depth."""
+    max_range: float = math.inf
+    """Metres beyond which the sensor measures nothing."""
+    edge_holes: int = 0
+    """Pixels on either side of a depth discontinuity the sensor measures nothing at."""
+    dropout: float = 0.0
+    """Share of pixels it measures nothing at, at random."""
+
+    @property
+    def exact(self) -> bool:
+        return self == DepthSensor()
+
+    def name(self) -> str:
+        """What sets this sensor apart, for the folder of its depth maps ("" for an exact one)."""
+        parts = {"noise": self.noise, "range": self.max_range, "edges": self.edge_holes, "dropout": self.dropout}
+        default = {"noise": 0.0, "range": math.inf, "edges": 0, "dropout": 0.0}
+        return "_".join(f"{key}{value:g}" for key, value in parts.items() if value != default[key])
+
+
+def discontinuities(depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose depth differs from a 4-neighbour's by more than EDGE_JUMP of the nearer one."""
+    across = np.abs(np.diff(depth, axis=1)) > EDGE_JUMP * np.minimum(depth[:, :-1], depth[:, 1:])
+    down = np.abs(np.diff(depth, axis=0)) > EDGE_JUMP * np.minimum(depth[:-1], depth[1:])
+    edges = np.zeros(depth.shape, dtype=bool)
+    edges[:, :-1] |= across
+    edges[:, 1:] |= across
+    edges[:-1] |= down
+    edges[1:] |= down
+    return edges
+
+
+def dilated(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """`mask` grown by `pixels` in every direction (a square neighbourhood)."""
+    height, width = mask.shape
+    for _ in range(pixels):
+        padded = np.pad(mask, 1)
+        mask = np.logical_or.reduce([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)])
+    return mask
+
+
+def sensed_depth(depth: np.ndarray, sensor: DepthSensor, rng: np.random.Generator) -> np.ndarray:
+    """The depth map (H, W, metres; 0: no measurement) `sensor` records of the exact z-depth `depth`."""
+    holes = depth > sensor.max_range
+    if sensor.edge_holes > 0:
+        holes |= dilated(discontinuities(depth), sensor.edge_holes - 1)
+    if sensor.dropout > 0:
+        holes |= rng.random(depth.shape) < sensor.dropout
+    noisy = depth + sensor.noise * depth**2 * rng.standard_normal(depth.shape) if sensor.noise > 0 else depth
+    return np.where(holes | (noisy <= 0), 0.0, noisy).astype(np.float32)

@@ -217,6 +217,25 @@ def cast_rays(origins: np.ndarray, dirs: np.ndarray, scene: Scene) -> np.ndarray
     return np.clip(colour * shade[:, None], 0.0, 1.0)
 
 
+def hit_distances(origins: np.ndarray, dirs: np.ndarray, scene: Scene) -> np.ndarray:
+    """Distance along each unit ray (N,) to the surface cast_rays colours it with."""
+    t, _, _ = _intersect_box_inside(origins, dirs, scene.lo, scene.hi)
+    for crate in scene.crates:
+        t = np.minimum(t, _intersect_crate(origins, dirs, crate)[0])
+    return t
+
+
+def camera_rays(
+    c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, u: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Origins and unit world directions of the rays through image points (u, v), (N, 3) each, and the length of
+    each direction in camera coordinates before it was made a unit (its z component is -1)."""
+    dirs_cam = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones_like(u)], axis=-1).reshape(-1, 3)
+    lengths = np.linalg.norm(dirs_cam, axis=-1)
+    dirs = dirs_cam @ c2w[:, :3].T / lengths[:, None]
+    return np.broadcast_to(c2w[:, 3], dirs.shape), dirs, lengths
+
+
 def render_view(
     c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int, scene: Scene
 ) -> np.ndarray:
@@ -225,13 +244,21 @@ def render_view(
     offsets = (np.arange(samples) + 0.5) / samples
     u = (np.arange(width)[:, None] + offsets[None, :]).ravel()
     v = (np.arange(height)[:, None] + offsets[None, :]).ravel()
-    uu, vv = np.meshgrid(u, v)
-    dirs_cam = np.stack([(uu - cx) / fx, -(vv - cy) / fy, -np.ones_like(uu)], axis=-1).reshape(-1, 3)
-    dirs = dirs_cam @ c2w[:, :3].T
-    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
-    origins = np.broadcast_to(c2w[:, 3], dirs.shape)
+    origins, dirs, _ = camera_rays(c2w, fx, fy, cx, cy, *np.meshgrid(u, v))
     rgb = cast_rays(origins, dirs, scene).reshape(height, samples, width, samples, 3).mean(axis=(1, 3))
     return np.round(rgb * 255).astype(np.uint8)
+
+
+def render_depth(
+    c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int, scene: Scene
+) -> np.ndarray:
+    """Exact z-depth (distance along the optical axis, metres) of one view at its pixel centres, (height, width)
+    float32: what a perfect depth sensor registered to the colour camera records (one sample per pixel, never a mix
+    of a foreground and a background depth)."""
+    origins, dirs, lengths = camera_rays(
+        c2w, fx, fy, cx, cy, *np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    )
+    return (hit_distances(origins, dirs, scene) / lengths).reshape(height, width).astype(np.float32)
 
 
 MOVE_DISTANCE = 1.5

@@ -82,11 +82,17 @@ class OrderedCaptureDataParserConfig(CaptureDataParserConfig):
     """Capture order: frame timestamps (time/timestamp), file-name numbers or file order; auto: first available."""
     images_dir: Optional[Path] = None
     """Images of a COLMAP model; default: the `images` folder next to it (<scene>/images for <scene>/sparse/0)."""
+    depth_unit_scale_factor: float = 1e-3
+    """Metres one unit of the frames' depth maps (depth_file_path) is: 1e-3 for millimetres, as nerfstudio's parser."""
 
     def validate(self) -> None:
         super().validate()
         if self.order not in get_args(Order):
             raise ContinualConfigError(f"--order must be one of {', '.join(get_args(Order))}, got {self.order}")
+        if not (np.isfinite(self.depth_unit_scale_factor) and self.depth_unit_scale_factor > 0):
+            raise ContinualConfigError(
+                f"--depth-unit-scale-factor must be a positive number of metres, got {self.depth_unit_scale_factor}"
+            )
 
 
 @dataclass
@@ -106,6 +112,8 @@ class ListedFrame:
     """nerfstudio's camera type of the frame's camera model."""
     mask: Optional[Path] = None
     """The frame's `mask_path` (0: the pixel does not train), None when it has none."""
+    depth: Optional[Path] = None
+    """The frame's `depth_file_path` (z-depth), None when it has none."""
     crop_radius: Optional[float] = None
     """Radius (pixels) around the image centre outside which a fisheye frame's pixels do not train; None: none."""
     timestamp: Any = None
@@ -120,14 +128,16 @@ def existing_file(path: Path, listed_in: Path, what: str = "image") -> Path:
     return path
 
 
-def check_masks_everywhere_or_nowhere(frames: List[ListedFrame], source: Path) -> None:
-    """nerfstudio's rule: a mask for every frame or for none (a frame without one would train on every pixel)."""
-    unmasked = [frame.name for frame in frames if frame.mask is None]
-    if 0 < len(unmasked) < len(frames):
-        raise DatasetError(
-            f"{source} frame {unmasked[0]}: has no mask_path while other frames have one (give every frame a mask, "
-            "or none)"
-        )
+def check_everywhere_or_nowhere(frames: List[ListedFrame], source: Path) -> None:
+    """nerfstudio's rule: a mask for every frame or for none (a frame without one would train on every pixel); and a
+    depth map for every frame or for none, as nerfstudio's parser asserts."""
+    for key, attribute, what in (("mask_path", "mask", "a mask"), ("depth_file_path", "depth", "a depth map")):
+        without = [frame.name for frame in frames if getattr(frame, attribute) is None]
+        if 0 < len(without) < len(frames):
+            raise DatasetError(
+                f"{source} frame {without[0]}: has no {key} while other frames have one (give every frame {what}, "
+                "or none)"
+            )
 
 
 def read_transforms(path: Path) -> List[ListedFrame]:
@@ -149,7 +159,7 @@ def read_transforms(path: Path) -> List[ListedFrame]:
         source = f"{path} frame {name}"
         # a frame's own intrinsics override the file-wide ones
         intrinsics, distortion, camera_type = parse_intrinsics({**shared, **frame}, source)
-        mask = frame.get("mask_path")
+        mask, depth = frame.get("mask_path"), frame.get("depth_file_path")
         listed.append(
             ListedFrame(
                 name=name,
@@ -159,11 +169,12 @@ def read_transforms(path: Path) -> List[ListedFrame]:
                 distortion=distortion,
                 camera_type=camera_type,
                 mask=None if mask is None else existing_file(path.parent / str(mask), path, "mask"),
+                depth=None if depth is None else existing_file(path.parent / str(depth), path, "depth map"),
                 crop_radius=radius if camera_type in CROPPED_CAMERA_TYPES else None,
                 timestamp=next((frame[key] for key in TIMESTAMP_KEYS if key in frame), None),
             )
         )
-    check_masks_everywhere_or_nowhere(listed, path)
+    check_everywhere_or_nowhere(listed, path)
     return apply_split_lists(meta, listed, path)
 
 
@@ -370,12 +381,13 @@ def calibration(frame: ListedFrame) -> Tuple[CameraType, List[float], List[float
     return frame.camera_type, frame.intrinsics.tolist(), frame.distortion.tolist()
 
 
-def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
+def stack_frames(frames: List[ListedFrame], source: Path, depth_unit_scale_factor: float) -> CaptureFrames:
     check_fisheye624(frames, source)
     intrinsics = np.stack([frame.intrinsics for frame in frames])
     distortion = np.stack([frame.distortion for frame in frames])
     camera_type = np.array([frame.camera_type.value for frame in frames])
     masks = [frame.mask for frame in frames if frame.mask is not None]  # every frame's or none (read_transforms)
+    depths = [frame.depth for frame in frames if frame.depth is not None]  # likewise
     radii = np.array([np.inf if frame.crop_radius is None else frame.crop_radius for frame in frames])
     held_out = np.array([frame.held_out for frame in frames])
     return CaptureFrames(
@@ -393,6 +405,8 @@ def stack_frames(frames: List[ListedFrame], source: Path) -> CaptureFrames:
         mask_filenames=masks or None,
         fisheye_crop_radius=radii if np.isfinite(radii).any() else None,
         held_out=held_out if held_out.any() else None,
+        depth_filenames=list(depths) or None,
+        depth_unit_scale_factor=depth_unit_scale_factor,
     )
 
 
@@ -404,4 +418,5 @@ class OrderedCaptureDataParser(DataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         listed, source = read_listed_frames(self.config)
         permutation = capture_order(listed, self.config.order, source)
-        return capture_outputs(stack_frames([listed[index] for index in permutation], source), self.config)
+        frames = stack_frames([listed[index] for index in permutation], source, self.config.depth_unit_scale_factor)
+        return capture_outputs(frames, self.config)

@@ -1,21 +1,26 @@
 """`continual-scannet`: a ScanNet scene in capture order, from SensReader's exported folder or its raw `.sens` file.
 
 A `.sens` file holds several GB of frames: it is read streaming (headers and poses only, seeking past the
-image bytes), and the JPEG bytes of the selected frames are copied once into a cache folder so the
-images load lazily from disk like those of an exported folder.
+image bytes), and the JPEG bytes and depth frames of the selected frames are copied once into a cache folder (depth
+as 16-bit PNGs, as SensReader exports them) so the images load lazily from disk like those of an exported folder.
+Depth maps are z-depth in millimetres (a .sens file's depth shift says), taken by the depth camera (its own
+intrinsics and size, 640x480) from the colour camera's pose.
 """
 
 from __future__ import annotations
 
+import io
 import os
 import struct
-from dataclasses import dataclass, field
+import zlib
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import BinaryIO, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image
 
 from continual_nerf.atomic_files import write_bytes_atomically
 from continual_nerf.dataparsers.capture import (
@@ -37,6 +42,11 @@ SENS_CALIBRATION = struct.Struct("<64f2i4IfQ")
 SENS_FRAME = struct.Struct("<16f4Q")
 """Per-frame header: camera-to-world, colour and depth timestamps, colour and depth byte counts."""
 COLOR_COMPRESSION = {-1: "unknown", 0: "raw", 1: "png", 2: "jpeg"}
+DEPTH_COMPRESSION = {-1: "unknown", 0: "raw_ushort", 1: "zlib_ushort", 2: "occi_ushort"}
+RAW_USHORT, ZLIB_USHORT = 0, 1
+"""The depth compressions read: uint16 values as they are, or zlib-compressed."""
+MILLIMETRE = 1e-3
+"""Metres per unit of an exported folder's depth PNGs (SensReader writes the .sens values, millimetres)."""
 
 
 @dataclass
@@ -63,13 +73,31 @@ class ContinualScanNetDataParserConfig(CaptureDataParserConfig):
 
 @dataclass
 class SensFrame:
-    """Where one frame's colour JPEG sits in a .sens file, and its pose."""
+    """Where one frame's colour JPEG and depth frame sit in a .sens file, and its pose."""
 
     index: int
     camera_to_world: np.ndarray
     """(4, 4) float64 camera-to-world, OpenCV convention, metres."""
     color_offset: int
     color_size: int
+    depth_size: int
+    """Bytes of the depth frame, which follows the colour bytes."""
+
+    @property
+    def depth_offset(self) -> int:
+        return self.color_offset + self.color_size
+
+
+@dataclass
+class SensDepth:
+    """A .sens file's depth camera: intrinsics, size, compression and the units of its values."""
+
+    intrinsic: np.ndarray
+    width: int
+    height: int
+    compression: int
+    shift: float
+    """Depth values per metre (1000: millimetres)."""
 
 
 @dataclass
@@ -80,6 +108,7 @@ class SensIndex:
     width: int
     height: int
     frames: List[SensFrame]
+    depth: SensDepth
 
 
 def index_ranges(indices: Sequence[int]) -> str:
@@ -153,9 +182,32 @@ def build_frames(
     )
 
 
+def depth_intrinsics(intrinsic: np.ndarray, size: Tuple[int, int], count: int, source: str) -> np.ndarray:
+    """(count, 6) fx, fy, cx, cy, width, height of the depth camera, checked, for every frame."""
+    check_intrinsics(*pinhole(intrinsic), *size, source)
+    return np.tile([*pinhole(intrinsic), *size], (count, 1))
+
+
+def with_exported_depth(frames: CaptureFrames, folder: Path) -> CaptureFrames:
+    """`frames` with depth/<i>.png beside every color/<i>.jpg and the depth camera of intrinsic_depth.txt, when the
+    folder has depth/ (SensReader's --export_depth_images); unchanged otherwise."""
+    depth_dir = folder / "depth"
+    if not depth_dir.is_dir():
+        return frames
+    depth_files = [depth_dir / f"{image.stem}.png" for image in frames.image_filenames]
+    for path in depth_files:
+        if not path.is_file():
+            raise DatasetError(f"{path}: depth map missing (the scene has {depth_dir}, with a depth map per frame)")
+    intrinsic_file = folder / "intrinsic" / "intrinsic_depth.txt"
+    intrinsics = depth_intrinsics(
+        read_matrix(intrinsic_file), image_size(depth_files[0]), len(frames), str(intrinsic_file)
+    )
+    return replace(frames, depth_filenames=depth_files, depth_intrinsics=intrinsics, depth_unit_scale_factor=MILLIMETRE)
+
+
 def read_exported_folder(folder: Path, intrinsic_size: Tuple[int, int]) -> CaptureFrames:
-    """color/<i>.jpg with pose/<i>.txt in numeric order of i; frames with a -inf pose are skipped; intrinsics for
-    images of `intrinsic_size`, scaled to the images' size."""
+    """color/<i>.jpg with pose/<i>.txt in numeric order of i (and depth/<i>.png when there); frames with a -inf pose
+    are skipped; intrinsics for images of `intrinsic_size`, scaled to the images' size."""
     color_dir, pose_dir = folder / "color", folder / "pose"
     for required in (color_dir, pose_dir):
         if not required.is_dir():
@@ -182,7 +234,7 @@ def read_exported_folder(folder: Path, intrinsic_size: Tuple[int, int]) -> Captu
     size = image_size(kept[0])
     CONSOLE.log(f"{folder}: exported ScanNet scene, {len(kept)} frames with a pose", markup=False)
     intrinsics = fit_calibration(pinhole(intrinsic), intrinsic_size, size, str(intrinsic_file))
-    return build_frames(kept, poses, intrinsics, size, str(intrinsic_file))
+    return with_exported_depth(build_frames(kept, poses, intrinsics, size, str(intrinsic_file)), folder)
 
 
 def read_exact(sens: BinaryIO, size: int, path: Path, what: str) -> bytes:
@@ -214,12 +266,17 @@ def read_sens_index(path: Path) -> SensIndex:
         sens.seek(name_length, os.SEEK_CUR)
         calibration = SENS_CALIBRATION.unpack(read_exact(sens, SENS_CALIBRATION.size, path, "the header"))
         intrinsic_color = np.array(calibration[:16], dtype=np.float64).reshape(4, 4)
-        color_compression, _, width, height, _, _, _, num_frames = calibration[64:]
+        intrinsic_depth = np.array(calibration[32:48], dtype=np.float64).reshape(4, 4)
+        color_compression, depth_compression, width, height, depth_width, depth_height, shift, num_frames = calibration[
+            64:
+        ]
         if color_compression != 2:
             kind = COLOR_COMPRESSION.get(color_compression, f"code {color_compression}")
             raise DatasetError(
                 f"{path}: colour frames are {kind}-compressed; only jpeg colour .sens files are supported"
             )
+        depth = SensDepth(intrinsic_depth, depth_width, depth_height, depth_compression, shift)
+        check_sens_depth(path, depth)
         frames = []
         for index in range(num_frames):
             values = SENS_FRAME.unpack(read_exact(sens, SENS_FRAME.size, path, f"frame {index} of {num_frames}"))
@@ -232,9 +289,51 @@ def read_sens_index(path: Path) -> SensIndex:
                     f"(frame {index} of {num_frames} needs {end} bytes, the file has {file_size})"
                 )
             pose = np.array(values[:16], dtype=np.float64).reshape(4, 4)
-            frames.append(SensFrame(index, pose, color_offset, color_size))
+            frames.append(SensFrame(index, pose, color_offset, color_size, depth_size))
             sens.seek(end)
-    return SensIndex(intrinsic_color, width, height, frames)
+    return SensIndex(intrinsic_color, width, height, frames, depth)
+
+
+def check_sens_depth(path: Path, depth: SensDepth) -> None:
+    """A depth camera whose frames can be read: a known compression, a size and a positive depth shift."""
+    if depth.compression not in (RAW_USHORT, ZLIB_USHORT):
+        kind = DEPTH_COMPRESSION.get(depth.compression, f"code {depth.compression}")
+        raise DatasetError(
+            f"{path}: depth frames are {kind}-compressed; only raw_ushort and zlib_ushort depth can be read "
+            "(export the scene with ScanNet's SensReader and point --data at the folder)"
+        )
+    if min(depth.width, depth.height) < 1 or not (np.isfinite(depth.shift) and depth.shift > 0):
+        raise DatasetError(
+            f"{path} header: depth frames of {depth.width}x{depth.height} pixels with depth shift {depth.shift:g} "
+            "(the size must be at least 1x1, the shift positive)"
+        )
+
+
+def decode_depth(path: Path, frame: SensFrame, depth: SensDepth, data: bytes) -> np.ndarray:
+    """(height, width) uint16 depth frame from its bytes in the .sens file; a frame of the wrong size is an error."""
+    expected = depth.width * depth.height * 2
+    try:
+        raw = zlib.decompressobj().decompress(data, expected + 1) if depth.compression == ZLIB_USHORT else data
+    except zlib.error as error:
+        raise DatasetError(f"{path}: frame {frame.index}'s depth frame is not zlib data ({error})") from None
+    if len(raw) != expected:
+        raise DatasetError(
+            f"{path}: frame {frame.index}'s depth frame holds {len(raw)} bytes, a {depth.width}x{depth.height} "
+            f"uint16 depth frame {expected}"
+        )
+    return np.frombuffer(raw, dtype="<u2").reshape(depth.height, depth.width)
+
+
+def max_depth_bytes(depth: SensDepth) -> int:
+    """The most bytes a depth frame can take: its uint16 values, a little more when zlib could not compress them."""
+    raw = depth.width * depth.height * 2
+    return raw if depth.compression == RAW_USHORT else raw + raw // 1000 + 64
+
+
+def png_bytes(depth: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(depth).save(buffer, format="PNG")
+    return buffer.getvalue()
 
 
 def is_cached(target: Path, size: int) -> bool:
@@ -245,6 +344,36 @@ def is_cached(target: Path, size: int) -> bool:
 def cached_jpeg(cache: Path, frame: SensFrame) -> Path:
     """Named like SensReader's export, so both layouts share file names."""
     return cache / f"{frame.index}.jpg"
+
+
+def cached_depth(cache: Path, frame: SensFrame) -> Path:
+    """Named like SensReader's export (depth/<i>.png)."""
+    return cache / "depth" / f"{frame.index}.png"
+
+
+def extract_depth_frames(path: Path, cache: Path, frames: List[SensFrame], depth: SensDepth) -> None:
+    """Decode each frame's depth frame from the .sens file into its cache PNG, unless already there (files appear
+    in the cache only by rename: one that is there is complete)."""
+    missing = [frame for frame in frames if frame.depth_size and not cached_depth(cache, frame).is_file()]
+    if not missing:
+        return
+    CONSOLE.log(f"{path}: extracting {len(missing)} depth frames to {cache / 'depth'}", markup=False)
+    with path.open("rb") as sens:
+        for frame in missing:
+            if frame.depth_size > max_depth_bytes(depth):
+                raise DatasetError(
+                    f"{path}: frame {frame.index}'s depth frame takes {frame.depth_size} bytes, more than a "
+                    f"{depth.width}x{depth.height} {DEPTH_COMPRESSION[depth.compression]} frame can"
+                )
+            sens.seek(frame.depth_offset)
+            values = decode_depth(path, frame, depth, sens.read(frame.depth_size))
+            try:
+                cached_depth(cache, frame).parent.mkdir(parents=True, exist_ok=True)
+                write_bytes_atomically(cached_depth(cache, frame), png_bytes(values))
+            except OSError as error:
+                raise DatasetError(
+                    f"{cache}: cannot write the extracted depth frames ({error.strerror or error})"
+                ) from None
 
 
 def extract_colour_frames(path: Path, cache: Path, frames: List[SensFrame]) -> None:
@@ -310,9 +439,19 @@ class ContinualScanNetDataParser(DataParser):
             (index.width, index.height),
             f"{path} header",
         )
+        depth = index.depth
+        frames = replace(
+            frames,
+            depth_filenames=[cached_depth(cache, frame) if frame.depth_size else None for frame in usable],
+            depth_intrinsics=depth_intrinsics(
+                depth.intrinsic, (depth.width, depth.height), len(usable), f"{path} header"
+            ),
+            depth_unit_scale_factor=1.0 / depth.shift,
+        )
         CONSOLE.log(f"{path}: ScanNet .sens file, {len(usable)} frames with a pose", markup=False)
-        selected = select_frames(frames, self.config)
-        extract_colour_frames(path, cache, [by_file[target] for target in selected.image_filenames])
+        selected = [by_file[target] for target in select_frames(frames, self.config).image_filenames]
+        extract_colour_frames(path, cache, selected)
+        extract_depth_frames(path, cache, selected, depth)
         return frames
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:

@@ -1,13 +1,15 @@
 """`continual-tum`: a TUM RGB-D sequence in capture order, each image posed from the motion-capture ground truth.
 
 Ground truth (~100 Hz) and images (~30 Hz) come from different clocks, so every image is associated with
-a pose by timestamp: the nearest pose within a tolerance, or slerp/lerp between the two poses around it.
+a pose by timestamp: the nearest pose within a tolerance, or slerp/lerp between the two poses around it. Depth maps
+(depth.txt, depth/*.png: 16-bit, 5000 per metre, registered to the colour images) run on the depth camera's clock:
+each image takes the depth map nearest in time within the same tolerance, as TUM's associate.py pairs them.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import List, Literal, Optional, Tuple, Type
 
@@ -48,6 +50,8 @@ SENSORS = {
 ROS_DEFAULT = SensorCalibration(525.0, 525.0, 319.5, 239.5, (0.0, 0.0, 0.0, 0.0, 0.0))
 CALIBRATED_SIZE = (640, 480)
 """Width and height of the images every sensor calibration above is for (TUM's own images)."""
+DEPTH_FACTOR = 5000.0
+"""Depth values per metre of TUM's depth PNGs."""
 
 
 @dataclass
@@ -59,9 +63,11 @@ class ContinualTumDataParserConfig(CaptureDataParserConfig):
     data: Path = Path("data/tum/rgbd_dataset_freiburg1_desk")
     """Sequence folder (rgb.txt, groundtruth.txt, rgb/); freiburg1/2/3 in its name picks the sensor calibration."""
     association: Literal["nearest", "interpolate"] = "nearest"
-    """Pose of an image: the nearest ground-truth pose, or slerp/lerp between the two poses around its timestamp."""
+    """Pose of an image: the nearest ground-truth pose, or slerp/lerp between the two poses around its timestamp (its
+    depth map is the nearest one either way: depth maps are not interpolated)."""
     max_time_difference: float = 0.02
-    """Seconds from an image to its nearest ground-truth pose beyond which the image is dropped."""
+    """Seconds from an image to its nearest ground-truth pose beyond which the image is dropped, and to its nearest
+    depth map beyond which it trains without depth."""
     fx: Optional[float] = None
     """Focal length in x in pixels of the images as they are, instead of the sensor's."""
     fy: Optional[float] = None
@@ -200,6 +206,14 @@ def associate(
     return posed, poses
 
 
+def nearest_within(times: np.ndarray, targets: np.ndarray, tolerance: float) -> np.ndarray:
+    """Per target time, the index of the nearest of the sorted `times`, or -1 when none is within `tolerance`."""
+    after = np.clip(np.searchsorted(times, targets), 0, len(times) - 1)
+    before = np.clip(after - 1, 0, len(times) - 1)
+    nearest = np.where(np.abs(times[before] - targets) <= np.abs(times[after] - targets), before, after)
+    return np.where(np.abs(times[nearest] - targets) <= tolerance, nearest, -1)
+
+
 def listing(names: List[str], limit: int = 4) -> str:
     """The first few names of a long list, for a one-line message."""
     shown = ", ".join(names[:limit])
@@ -237,15 +251,40 @@ class ContinualTumDataParser(DataParser):
         )
 
     def _read_images(self, rgb_file: Path) -> Tuple[np.ndarray, List[Path], np.ndarray]:
-        """Timestamps, files and rgb.txt line numbers of the listed images, in time order."""
+        """Timestamps, files and line numbers of the images a list file (rgb.txt, depth.txt) names, in time order."""
         rows = read_rows(rgb_file, 2)
         times = np.array([parse_numbers(rgb_file, number, fields[:1])[0] for number, fields in rows])
         order = np.argsort(times, kind="stable")
         files = [self.config.data / rows[i][1][1] for i in order]
         return times[order], files, np.array([rows[i][0] for i in order])
 
-    def _posed_images(self) -> Tuple[List[Path], np.ndarray]:
-        """The images that get a ground-truth pose, in time order, and their OpenCV camera-to-world matrices."""
+    def _depth_maps(self, image_times: np.ndarray) -> Optional[List[Optional[Path]]]:
+        """Per image the depth map nearest in time within --max-time-difference (None for an image without one);
+        None when the sequence has no depth.txt."""
+        c = self.config
+        depth_file = c.data / "depth.txt"
+        if not depth_file.exists():
+            return None
+        depth_times, depth_files, depth_lines = self._read_images(depth_file)
+        nearest = nearest_within(depth_times, image_times, c.max_time_difference)
+        for index in np.unique(nearest[nearest >= 0]):
+            if not depth_files[index].is_file():
+                raise DatasetError(
+                    f"{depth_files[index]}: depth map missing (listed in {depth_file}, line {depth_lines[index]})"
+                )
+        if (nearest < 0).any():
+            CONSOLE.print(
+                f"{depth_file}: {int((nearest < 0).sum())} of {len(nearest)} images have no depth map within "
+                f"{c.max_time_difference} s and train without depth",
+                style="bold yellow",
+                markup=False,
+                soft_wrap=True,
+            )
+        return [depth_files[index] if index >= 0 else None for index in nearest]
+
+    def _posed_images(self) -> Tuple[List[Path], np.ndarray, np.ndarray]:
+        """The images that get a ground-truth pose, in time order, their OpenCV camera-to-world matrices and their
+        timestamps."""
         c = self.config
         rgb_file, groundtruth_file = c.data / "rgb.txt", c.data / "groundtruth.txt"
         image_times, image_files, image_lines = self._read_images(rgb_file)
@@ -272,17 +311,22 @@ class ContinualTumDataParser(DataParser):
                 raise DatasetError(f"{image}: missing (listed in {rgb_file}, line {line})")
         for pose, time in zip(poses, image_times[posed]):
             check_pose(pose, f"{groundtruth_file} at time {time:.6f}")
-        return kept, poses
+        return kept, poses, image_times[posed]
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         c = self.config
         if not c.data.is_dir():
             raise DatasetError(f"{c.data}: no such folder")
-        images, poses = self._posed_images()
+        images, poses, times = self._posed_images()
         CONSOLE.log(
             f"{c.data}: TUM RGB-D sequence, {len(images)} images posed by {c.association} timestamp", markup=False
         )
-        return capture_outputs(self._frames(images, poses), c)
+        frames = self._frames(images, poses)
+        depth_maps = self._depth_maps(times)
+        if depth_maps is not None:
+            # TUM's depth images are registered to the colour images: they share the colour camera's intrinsics
+            frames = replace(frames, depth_filenames=depth_maps, depth_unit_scale_factor=1.0 / DEPTH_FACTOR)
+        return capture_outputs(frames, c)
 
     def _frames(self, image_files: List[Path], poses_opencv: np.ndarray) -> CaptureFrames:
         """CaptureFrames with the sensor's (or the user's) calibration; size from the first image's header."""

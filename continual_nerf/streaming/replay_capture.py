@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,10 +22,14 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from continual_nerf.dataparsers.capture_folder import ENTRY_RANK
+from continual_nerf.dataparsers.capture_folder import ENTRY_RANK, TRAINING_FILE, trained_task
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.transforms_json import DISTORTION_KEYS
 from continual_nerf.errors import ContinualNerfError, DatasetError
+from continual_nerf.interrupts import EXIT_CODES
+
+TRAINING_POLL_SECONDS = 0.2
+"""How often --wait-for-training looks at what the training run trains."""
 
 
 @dataclass
@@ -39,6 +44,9 @@ class ReplayCaptureConfig:
     """Write a `.task` marker after every this many frames (0: none; the reader's --frames-per-task cuts the tasks)."""
     end_marker: bool = True
     """Write the `.end` marker after the last frame, so the training run ends with the capture."""
+    wait_for_training: bool = False
+    """Write each task's frames (--task-every) only once the training run reading the folder trains the task before
+    it: the tasks then stream in while it trains, as a live capture's would, however long its set-up takes."""
     dataparser: AnnotatedDataParserUnion = field(default_factory=ContinualDemoDataParserConfig)
     """Dataset to replay: any registered dataparser (the built-in demo room by default)."""
 
@@ -86,20 +94,36 @@ def check_empty(folder: Path) -> None:
         raise DatasetError(f"{folder}: already holds a capture; choose another --output or empty it")
 
 
+def wait_for_training(folder: Path, task: int) -> None:
+    """Wait until the training run on `folder` trains task `task` (0-based) or a later one."""
+    CONSOLE.log(f"Task {task + 2} waits until a training run on {folder} (continual-ngp-stream) trains task {task + 1}")
+    while True:
+        trained = trained_task(folder)
+        if trained is not None and trained >= task:
+            return
+        time.sleep(TRAINING_POLL_SECONDS)
+
+
 def replay(config: ReplayCaptureConfig) -> None:
     if config.fps < 0 or config.task_every < 0:
         raise ContinualNerfError(
             f"--fps and --task-every must be 0 or positive, got {config.fps:g} and {config.task_every}"
         )
+    if config.wait_for_training and not config.task_every:
+        raise ContinualNerfError("--wait-for-training needs --task-every: the frames of a task")
     check_empty(config.output)
+    (config.output / TRAINING_FILE).unlink(missing_ok=True)  # an earlier run's answer is not this run's
     outputs = config.dataparser.setup().get_dataparser_outputs(split="train")
     count = len(outputs.image_filenames)
     pace = f"at {config.fps:g} frames/s" if config.fps else "as fast as possible"
     CONSOLE.log(f"Replaying {count} frames into {config.output} {pace}")
-    started = time.monotonic()
+    started = next_write = time.monotonic()
     for index, image in enumerate(outputs.image_filenames):
-        if config.fps:
-            time.sleep(max(0.0, started + index / config.fps - time.monotonic()))
+        if config.wait_for_training and index and index % config.task_every == 0:
+            wait_for_training(config.output, index // config.task_every - 1)
+            next_write = max(next_write, time.monotonic())  # the pace starts again from here
+        time.sleep(max(0.0, next_write - time.monotonic()))
+        next_write += 1 / config.fps if config.fps else 0.0
         write_frame(config.output, index, Path(image), frame_json(outputs.cameras, index))
         if config.task_every and (index + 1) % config.task_every == 0 and index + 1 < count:
             write_marker(config.output, index, "task")
@@ -115,6 +139,8 @@ def entrypoint() -> None:
         replay(config)
     except ContinualNerfError as error:
         raise SystemExit(f"continual-nerf-replay-capture: error: {error}") from None
+    except KeyboardInterrupt:
+        raise SystemExit(EXIT_CODES[signal.SIGINT]) from None  # Ctrl-C stops the replay: the frames written stay
 
 
 if __name__ == "__main__":

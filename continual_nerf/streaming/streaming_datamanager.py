@@ -26,7 +26,7 @@ from continual_nerf.core import distributed
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
-from continual_nerf.dataparsers.capture_folder import CaptureTasks, StreamFrame
+from continual_nerf.dataparsers.capture_folder import CaptureTasks, StreamFrame, announce_training
 from continual_nerf.dataparsers.stream_dataparser import StreamDataParser, StreamDataParserConfig
 from continual_nerf.errors import ContinualConfigError
 
@@ -66,6 +66,10 @@ class StreamingDataManagerConfig(ContinualDataManagerConfig):
         """Frames keep arriving while training runs: no per-frame codes or poses for frames not there yet."""
         return False
 
+    def describe_tasks(self) -> str:
+        at_most = f", at most {self.max_tasks}" if self.max_tasks else ""
+        return f"tasks as the capture sends them{at_most}, {self.task_budget_text()} each"
+
     def budgeted_iterations(self) -> Optional[int]:
         """The capture decides how many tasks there are."""
         return None
@@ -94,6 +98,8 @@ class StreamingDataManager(ContinualDataManager):
         self._test_frames: List[np.ndarray] = []
         self._last_poll = 0.0
         self._idle_reported = False
+        self._announced: Optional[int] = None
+        """The task the capture folder was last told trains (rank 0 tells it)."""
         super().__init__(config, *args, **kwargs)
 
     @property
@@ -176,7 +182,11 @@ class StreamingDataManager(ContinualDataManager):
         return [TrainingCallback([location], self._poll_capture)]
 
     def _poll_capture(self, step: int) -> None:
-        """Read new frames every --poll-seconds."""
+        """Tell the capture folder which task trains once it has trained an iteration; read new frames every
+        --poll-seconds."""
+        if self._announced != self.released_task and distributed.is_main():
+            announce_training(self.capture.config.data, self.released_task)
+            self._announced = self.released_task
         if time.monotonic() - self._last_poll >= self.capture.config.poll_seconds:
             self.capture.poll()
             self._last_poll = time.monotonic()

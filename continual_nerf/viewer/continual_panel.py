@@ -18,7 +18,7 @@ import viser
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer import Viewer
-from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerElement, ViewerText
+from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerDropdown, ViewerElement, ViewerText
 
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.nerfstudio_compat import (
@@ -52,6 +52,8 @@ NO_ROW_YET = "measured when task 1 ends"
 """What the accuracy fields say before the first task has ended."""
 MARKDOWN_ROOT = Path(__file__).parent
 """viser warns about markdown without an image root; the pictures are data URLs, read from nowhere."""
+PICTURES = ("test PSNR", "depth abs rel")
+"""What the accuracy picture can show: the tasks' test PSNR, or their rendered depth's error (captures with depth)."""
 
 
 def task_text(status: ContinualStatus) -> str:
@@ -65,6 +67,13 @@ def mean_psnr_text(mean_psnr: Sequence[float]) -> str:
     if not mean_psnr:
         return NO_ROW_YET
     return f"{mean_psnr[-1]:.2f} dB after task {len(mean_psnr)}"
+
+
+def accuracy_rows(status: ContinualStatus, picture: str) -> Tuple[List[List[Optional[float]]], bool]:
+    """The rows the accuracy picture draws, and whether they are depth errors: PSNR unless depth is chosen and the
+    capture has depth maps."""
+    depth = picture == PICTURES[1] and bool(status.depth_rows)
+    return (status.depth_rows if depth else [list(row) for row in status.psnr_rows]), depth
 
 
 def frame_view(client: viser.ClientHandle, view: View) -> None:
@@ -81,15 +90,16 @@ class TaskPictures:
     def __init__(self, server: viser.ViserServer) -> None:
         self.legend = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
         self.accuracy = server.gui.add_markdown("", image_root=MARKDOWN_ROOT)
-        self._drawn: Tuple[int, Optional[List[List[Optional[float]]]]] = (0, None)
+        self._drawn: Tuple[int, Optional[Sequence[Sequence[Optional[float]]]], bool] = (0, None, False)
 
-    def show(self, num_tasks: int, psnr_rows: List[List[Optional[float]]]) -> None:
-        drawn_tasks, drawn_rows = self._drawn
+    def show(self, num_tasks: int, psnr_rows: Sequence[Sequence[Optional[float]]], depth: bool = False) -> None:
+        """Draw the rows of PSNR (or, `depth`, of depth errors) that changed since the last drawing."""
+        drawn_tasks, drawn_rows, drawn_depth = self._drawn
         if num_tasks != drawn_tasks:
             self.legend.content = legend_markdown(num_tasks)
-        if psnr_rows and (psnr_rows != drawn_rows or num_tasks != drawn_tasks):
-            self.accuracy.content = accuracy_markdown(psnr_rows, num_tasks)
-        self._drawn = (num_tasks, psnr_rows)
+        if psnr_rows and (psnr_rows != drawn_rows or num_tasks != drawn_tasks or depth != drawn_depth):
+            self.accuracy.content = accuracy_markdown(psnr_rows, num_tasks, depth)
+        self._drawn = (num_tasks, psnr_rows, depth)
 
 
 class ContinualPanel:
@@ -117,6 +127,13 @@ class ContinualPanel:
         self.mean_psnr = ViewerText(
             "Mean test PSNR", NO_ROW_YET, disabled=True, hint="Over the test frames of every task seen so far"
         )
+        self.picture = ViewerDropdown(
+            "Accuracy picture",
+            PICTURES[0],
+            list(PICTURES),
+            cb_hook=lambda _: self.refresh(),
+            hint="What the accuracy matrix shows: test PSNR, or the rendered depth's error (captures with depth maps)",
+        )
         self.next_task = ViewerButton("Next task now", cb_hook=lambda _: request_next_task())
         self.pause_after_task = ViewerCheckbox(
             "Pause after this task", False, hint="Pause training when the open task ends; Resume Training goes on"
@@ -142,7 +159,7 @@ class ContinualPanel:
 
     @property
     def elements(self) -> Tuple[ViewerElement, ...]:
-        return (self.task, self.mean_psnr, self.next_task, self.pause_after_task, self.follow)
+        return (self.task, self.mean_psnr, self.picture, self.next_task, self.pause_after_task, self.follow)
 
     def install(self, viewer: Viewer, training_state: str) -> None:
         """Set up `viewer`'s scene with the released tasks only, and install the panel (as soon as the viewer runs)."""
@@ -241,7 +258,7 @@ class ContinualPanel:
         self._show_progress(self._progress_text(status.progress))
         self.mean_psnr.value = mean_psnr_text(status.mean_psnr)
         if self.pictures is not None:
-            self.pictures.show(status.known_tasks, status.psnr_rows)
+            self.pictures.show(status.known_tasks, *accuracy_rows(status, self.picture.value))
         self._refreshed = time.monotonic()
 
     def _progress_text(self, progress: str) -> str:

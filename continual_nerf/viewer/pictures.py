@@ -19,6 +19,8 @@ from continual_nerf.plots import draw_accuracy_matrix, task_colour_float
 
 ACCURACY_ALT = "accuracy matrix, PSNR (dB)"
 """Alt text of the accuracy picture (what a browser shows when it cannot draw it)."""
+DEPTH_ALT = "accuracy matrix, depth abs rel"
+"""Alt text of the accuracy picture of the rendered depth's error."""
 DISPLAY_WIDTH = 240
 """CSS pixels the panel shows its pictures at."""
 CSS_DPI = 100
@@ -31,6 +33,8 @@ LABEL_POINTS = 9.0
 """Font size of the axes' labels, ticks and the legend's numbers."""
 PSNR_LABEL = "test PSNR (dB)"
 """Label of the accuracy picture's colour bar."""
+DEPTH_LABEL = "depth abs rel"
+"""Label of the depth picture's colour bar."""
 
 
 def png_markdown(figure: Figure, alt: str) -> str:
@@ -56,31 +60,33 @@ def legend_markdown(num_tasks: int) -> str:
     return png_markdown(figure, "task colours")
 
 
-def value_format(num_tasks: int) -> Optional[str]:
-    """How the cells' values are written at the panel's width: with a decimal, in whole dB, or not at all (the colour
+def value_format(num_tasks: int, depth: bool = False) -> Optional[str]:
+    """How the cells' values are written at the panel's width: with decimals, in whole dB, or not at all (the colour
     bar reads them) once the tasks' columns are too narrow."""
     if num_tasks <= 5:
-        return "{:.1f}"
-    return "{:.0f}" if num_tasks <= 9 else None
+        return "{:.2f}" if depth else "{:.1f}"
+    return None if depth or num_tasks > 9 else "{:.0f}"
 
 
-def accuracy_figure(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int) -> Figure:
+def accuracy_figure(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int, depth: bool = False) -> Figure:
     """The accuracy matrix so far as a heat map: test PSNR of task j (columns) after training task i (rows), the
-    tasks' numbers on top and the colour bar, in dB, below."""
+    tasks' numbers on top and the colour bar, in dB, below; with `depth`, the rendered depth's absolute relative
+    error instead (darker is better)."""
     figure = Figure(figsize=(DISPLAY_WIDTH / CSS_DPI, 1.3 + 0.3 * max(len(psnr), 2)), dpi=CSS_DPI, layout="constrained")
     axes = figure.add_subplot()
     axes.xaxis.tick_top()  # before drawing, which colours the visible task numbers
     axes.xaxis.set_label_position("top")
-    image = draw_accuracy_matrix(axes, psnr, num_tasks, value_format(num_tasks), VALUE_POINTS)
+    colour_map = "viridis_r" if depth else "viridis"
+    image = draw_accuracy_matrix(axes, psnr, num_tasks, value_format(num_tasks, depth), VALUE_POINTS, colour_map)
     axes.tick_params(labelsize=LABEL_POINTS)
     axes.xaxis.label.set_fontsize(LABEL_POINTS)
     axes.yaxis.label.set_fontsize(LABEL_POINTS)
     colour_bar = figure.colorbar(image, ax=axes, location="bottom", fraction=0.08, pad=0.03, aspect=30)
-    colour_bar.set_label(PSNR_LABEL, fontsize=LABEL_POINTS)
+    colour_bar.set_label(DEPTH_LABEL if depth else PSNR_LABEL, fontsize=LABEL_POINTS)
     colour_bar.ax.tick_params(labelsize=LABEL_POINTS)
     return figure
 
 
-def accuracy_markdown(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int) -> str:
+def accuracy_markdown(psnr: Sequence[Sequence[Optional[float]]], num_tasks: int, depth: bool = False) -> str:
     """The accuracy picture (`accuracy_figure`) as a markdown image."""
-    return png_markdown(accuracy_figure(psnr, num_tasks), ACCURACY_ALT)
+    return png_markdown(accuracy_figure(psnr, num_tasks, depth), DEPTH_ALT if depth else ACCURACY_ALT)

@@ -9,6 +9,7 @@ the end of each task, so forgetting (or its absence) shows in the same view.
 
 from __future__ import annotations
 
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.continual_pipeline import ContinualPipeline
 from continual_nerf.core.sessions import SessionRecord
 from continual_nerf.errors import ContinualNerfError
+from continual_nerf.interrupts import EXIT_CODES
 from continual_nerf.nerfstudio_compat import (
     disable_training_buttons,
     init_scene_without_frustums,
@@ -38,6 +40,7 @@ from continual_nerf.nerfstudio_compat import (
     rerender,
     set_render_defaults,
     show_step,
+    stop_rendering_at_exit,
     viewer_answering_when_ready,
     watch_viewer_renders,
     without_lpips,
@@ -232,6 +235,7 @@ class ContinualRunViewer:
                 pipeline=pipeline,
                 train_lock=lock,
             )
+            stop_rendering_at_exit(viewer)
             travel = TaskTravel(viewer, pipeline, lock, accuracy, config.get_checkpoint_dir(), self.viewer)
         CONSOLE.print(viewer.viewer_info[0])
         return travel
@@ -239,11 +243,13 @@ class ContinualRunViewer:
     def main(self) -> None:
         try:
             self.start()
+            CONSOLE.print("Use ctrl+c to quit", justify="center")
+            while True:
+                time.sleep(1.0)
         except ContinualNerfError as error:
             raise SystemExit(f"continual-nerf-viewer: error: {error}") from None
-        CONSOLE.print("Use ctrl+c to quit", justify="center")
-        while True:
-            time.sleep(1.0)
+        except KeyboardInterrupt:
+            raise SystemExit(EXIT_CODES[signal.SIGINT]) from None  # Ctrl-C is how it ends: no traceback
 
 
 def entrypoint() -> None:
