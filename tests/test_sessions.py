@@ -107,6 +107,9 @@ def test_a_finished_run_learns_a_later_capture_with_the_earlier_capture_removed(
     assert matrix.steps == [2, 5, 8, 11], "the steps go on from the first session's"
     assert [row[:2] for row in matrix.psnr[2:]] == [[None, None]] * 2, "its test images are gone: not available"
     assert all(value is not None and value > 5 for row in matrix.psnr[2:] for value in row[2:])
+    assert matrix.depth_abs_rel[:2] == earlier.depth_abs_rel and len(matrix.depth_abs_rel) == 4
+    assert [row[:2] for row in matrix.depth_abs_rel[2:]] == [[None, None]] * 2, "earlier depth maps are not recorded"
+    assert all(value is not None for row in matrix.depth_abs_rel[2:] for value in row[2:]), "the new capture's depth"
     assert folder_state(first.get_base_dir()) == before, "the earlier run's folder is left as it was"
     saved = yaml.load((second.get_base_dir() / "config.yml").read_text(), Loader=yaml.Loader)
     assert saved.pipeline.datamanager.earlier_sessions == second.get_base_dir() / SESSIONS_FILENAME
@@ -350,6 +353,19 @@ def test_the_capture_it_already_trains_or_no_run_to_continue_is_refused_with_one
     assert str(exit_info.value.code).endswith(
         "--pipeline.continue-with-new-capture needs the run to continue: --load-dir <run>/nerfstudio_models"
     )
+
+
+@pytest.mark.slow
+def test_a_closed_tasks_weights_only_checkpoint_is_refused_naming_the_latest(first_transforms_run, tmp_path):
+    first, second, _, _ = first_transforms_run
+    config = continued(transforms_run(tmp_path / "outputs", second, "slim"), first)
+    steps = sorted(read_checkpoint(path)["step"] for path in first.get_checkpoint_dir().glob("step-*.ckpt"))
+    config.load_step = steps[0]  # the end of task 1: its weights alone once task 2's checkpoint was saved
+    with pytest.raises(SystemExit) as exit_info:
+        set_up(config)
+    message = str(exit_info.value.code)
+    assert "\n" not in message and "keeps the model's weights of a finished task only" in message
+    assert message.endswith(f"the latest, step-{steps[-1]:09d}.ckpt")
 
 
 @pytest.mark.slow
