@@ -4,8 +4,9 @@ transforms.json, to compare with the capture's own poses or to train on again.
     continual-nerf-export-poses --load-config outputs/<experiment>/continual-ngp/<timestamp>/config.yml \\
         --output-dir refined
 
-Every frame of the trajectory is written in capture order, in the capture's own (metric) coordinates: a training
-frame with its pose correction, a test frame with the correction of the training frame it is evaluated with (the
+Every frame of the trajectory is written in capture order, in the capture's own (metric) coordinates (for a run
+continued on later captures: every session's frames, in the first session's world coordinates): a training frame with
+its pose correction, a test frame with the correction of the training frame it is evaluated with (the
 nearest one of its task and camera). A run without pose refinement writes the poses the dataparser returned.
 """
 
@@ -74,8 +75,9 @@ def transforms_json(datamanager: ContinualDataManager, model: NerfactoModel) -> 
                 frame.update(zip(DISTORTION_KEYS, distortion))
             else:  # FISHEYE624's 12 parameters
                 frame["distortion_params"] = distortion
-        if outputs.mask_filenames is not None:
-            frame["mask_path"] = str(Path(outputs.mask_filenames[index]).resolve())
+        mask = None if outputs.mask_filenames is None else outputs.mask_filenames[index]
+        if mask is not None:  # an earlier session's frame keeps its mask in the run's record, not in a file
+            frame["mask_path"] = str(Path(mask).resolve())
         frames.append(frame)
     meta: Dict[str, Any] = {"camera_model": models[0], "frames": frames}
     radii = outputs.metadata.get(FISHEYE_CROP_RADIUS)

@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 from types import FrameType
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from nerfstudio.utils import comms
 
@@ -78,19 +78,21 @@ INTERRUPTS = Interrupts()
 """The process's handlers: signals belong to the process, not to one trainer."""
 
 
-def resume_command(checkpoint_dir: Path, argv: List[str]) -> str:
+def resume_command(checkpoint_dir: Path, argv: List[str], dropped: Sequence[str] = ()) -> str:
     """The command that resumes a run started with `argv` from `checkpoint_dir`: ns-train's own arguments with
-    `--load-dir` right after the method (other load options dropped), or a description when not started by ns-train."""
+    `--load-dir` right after the method (other load options and the `dropped` ones, with their values, left out), or a
+    description when not started by ns-train."""
     program, *arguments = argv
     if Path(program).name != "ns-train" or not arguments:
         return f"its ns-train command with --load-dir {shlex.quote(str(checkpoint_dir))}"
+    left_out = (*LOAD_OPTIONS, *dropped)
     kept: List[str] = []
     skip_value = False
     for argument in arguments[1:]:
         if skip_value:
             skip_value = False
-        elif argument in LOAD_OPTIONS:
+        elif argument in left_out:
             skip_value = True
-        elif not argument.startswith(tuple(f"{option}=" for option in LOAD_OPTIONS)):
+        elif not argument.startswith(tuple(f"{option}=" for option in left_out)):
             kept.append(argument)
     return shlex.join(["ns-train", arguments[0], "--load-dir", str(checkpoint_dir), *kept])

@@ -16,6 +16,7 @@ from PIL import Image
 from continual_nerf.core.task_split import split_into_tasks
 from continual_nerf.dataparsers import demo_capture, demo_scene
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.errors import ContinualConfigError
 
 
 def street(num_frames: int = 8):
@@ -170,3 +171,43 @@ def test_the_vectorised_hue_gives_colorsys_colours_to_the_last_bit():
     hues = np.random.default_rng(0).uniform(0.0, 0.999, size=(50, 7))
     expected = np.array([colorsys.hsv_to_rgb(h, 0.55, 0.95) for h in hues.ravel()]).reshape(50, 7, 3)
     assert np.array_equal(demo_scene.hsv_to_rgb(hues, 0.55, 0.95), expected)
+
+
+@pytest.mark.parametrize("scene", ["room", "street"])
+@pytest.mark.parametrize("change", ["object-moved", "wall-repainted"])
+def test_a_later_session_finds_one_region_changed_and_the_rest_as_it_was(scene, change):
+    before, after = (
+        ContinualDemoDataParserConfig(data=DEMO_CACHE, scene=scene, num_frames=8, width=24, height=18, change=kind)
+        .setup()
+        .get_dataparser_outputs("train")
+        for kind in ("none", change)
+    )
+    assert torch.equal(before.cameras.camera_to_worlds, after.cameras.camera_to_worlds), "the same path"
+    assert torch.equal(before.dataparser_transform, after.dataparser_transform), "the same world frame"
+    changed = [
+        (pixels(a) != pixels(b)).any(axis=-1).mean() for a, b in zip(before.image_filenames, after.image_filenames)
+    ]
+    assert max(changed) > 0.02, "some frames see the change"
+    assert max(changed) < 0.5 and sum(share == 0 for share in changed) >= len(changed) // 4, "a region, not the scene"
+
+
+def test_start_and_end_instants_cut_a_capture_into_sessions():
+    whole = demo(num_frames=8).setup().get_dataparser_outputs("train")
+    parts = [demo(num_frames=8, start_instant=0, end_instant=5), demo(num_frames=8, start_instant=5)]
+    first, second = (part.setup().get_dataparser_outputs("train") for part in parts)
+    assert first.image_filenames + second.image_filenames == whole.image_filenames
+    joined = torch.cat([first.cameras.camera_to_worlds, second.cameras.camera_to_worlds])
+    assert torch.equal(joined, whole.cameras.camera_to_worlds)
+    with pytest.raises(ContinualConfigError, match="--start-instant 5 --end-instant 5"):
+        demo(num_frames=8, start_instant=5, end_instant=5).setup()
+
+
+def test_two_laps_see_the_scene_as_it_was_then_as_it_changed():
+    both = demo(num_frames=8, laps=2, change="object-moved").setup().get_dataparser_outputs("train")
+    before = demo(num_frames=8).setup().get_dataparser_outputs("train")
+    after = demo(num_frames=8, change="object-moved").setup().get_dataparser_outputs("train")
+    assert len(both.image_filenames) == 16
+    assert torch.equal(both.cameras.camera_to_worlds, torch.cat([before.cameras.camera_to_worlds] * 2))
+    for lap, state in enumerate((before, after)):
+        for index, path in enumerate(state.image_filenames):
+            assert np.array_equal(pixels(both.image_filenames[8 * lap + index]), pixels(path))

@@ -22,6 +22,7 @@ from continual_nerf.core.continual_dataset import ClosedTaskError
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.method_configs import CONTINUAL_NGP_DEPTH
 from continual_nerf.recipes import small_model
 
@@ -140,6 +141,32 @@ def test_replayed_rays_take_the_oracles_depth_when_it_is_distilled(run_dir):
     colour, depth = pipeline.replay_oracle.render_with_depth(ray_bundle[replay])
     assert torch.allclose(batch["image"][replay], colour, atol=1e-6)
     assert torch.allclose(batch[DEPTH_KEY][replay], depth, atol=1e-6) and (depth > 0).any()
+
+
+class HalfChanged:
+    """A change guard's view of the open task that sees every other ray cross a change."""
+
+    def crosses_change(self, origins: torch.Tensor, directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+        return torch.arange(len(origins)) % 2 == 0
+
+
+def test_replayed_rays_the_change_guard_skips_take_no_depth_target(run_dir, monkeypatch):
+    trainer = set_up(depth_config(run_dir, distill_replay_depth=True))
+    pipeline = trainer.pipeline
+    pipeline.config.change_guard = "every-task"
+    pipeline.datamanager.next_train(0)
+    pipeline.open_next_task()
+    monkeypatch.setattr(pipeline, "_open_task_view", HalfChanged)
+    ray_bundle, batch = pipeline.datamanager.next_train(0)
+    torch.manual_seed(0)
+    pipeline.add_replay_targets(ray_bundle, batch)
+    replay, skipped = batch["is_replay"], batch[REPLAY_SKIPPED]
+    kept = ~skipped[replay]
+    assert kept.any() and not kept.all()
+    torch.manual_seed(0)
+    _, depth = pipeline.replay_oracle.render_with_depth(ray_bundle[replay])
+    assert torch.allclose(batch[DEPTH_KEY][replay][kept], depth[kept], atol=1e-6)
+    assert bool((batch[DEPTH_KEY][skipped] == 0).all()), "a surface an open-task frame sees changed: no depth target"
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 from nerfstudio.utils import misc
 
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
-from continual_nerf.core.distillation_loss import distillation_loss
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, distillation_loss
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import without_lpips
 from continual_nerf.validated_config import ValidatedConfig
@@ -93,7 +93,7 @@ class ContinualNeRFModel(NeRFModel):
         image = batch["image"].to(self.device)
         loss_dict = {}
         for level in ("coarse", "fine"):
-            terms = distillation_loss(outputs[f"rgb_{level}"], image, batch["is_replay"])
+            terms = distillation_loss(outputs[f"rgb_{level}"], image, batch["is_replay"], batch.get(REPLAY_SKIPPED))
             loss_dict.update({f"{name}_{level}": value for name, value in terms.items()})
         return misc.scale_dict(loss_dict, self.config.loss_coefficients)
 

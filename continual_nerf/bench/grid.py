@@ -144,8 +144,8 @@ class RunSummary:
     """Training seconds of the whole run (the pipeline's clock)."""
     iterations: int
     """Training iterations of the whole run (fewer with timed tasks where a step costs more)."""
-    final_row: List[float]
-    """Final test PSNR per task."""
+    final_row: List[Optional[float]]
+    """Final test PSNR per task (None: not available, an earlier session's test images were gone)."""
     after_own_task: Optional[float]
     """Mean over tasks of each task's test PSNR right after its own training (the accuracy matrix's diagonal); None
     for a joint run, whose tasks all train from the start."""
@@ -174,12 +174,14 @@ class RunSummary:
         extras: Optional[Dict[str, float]] = None,
     ) -> "RunSummary":
         final = matrix.psnr[-1]
-        best = [max(row[j] for row in matrix.psnr if len(row) > j) for j in range(len(final))]
+        measured = {j: value for j, value in enumerate(final) if value is not None}
+        best = {j: max(v for v in column(matrix, j)) for j in measured}
+        ssim = [value for value in matrix.ssim[-1] if value is not None]
         return cls(
             final_mean_psnr=matrix.mean_psnr[-1],
-            spread=max(final) - min(final),
-            largest_drop=max(b - f for b, f in zip(best, final)),
-            mean_ssim=sum(matrix.ssim[-1]) / len(matrix.ssim[-1]),
+            spread=max(measured.values()) - min(measured.values()),
+            largest_drop=max(best[j] - value for j, value in measured.items()),
+            mean_ssim=sum(ssim) / len(ssim),
             train_seconds=train_seconds,
             iterations=matrix.steps[-1] + 1,
             final_row=final,
@@ -194,11 +196,17 @@ class RunSummary:
         )
 
 
+def column(matrix: AccuracyMatrix, task: int) -> List[float]:
+    """Task `task`'s PSNR in every row that measured it."""
+    return [value for row in matrix.psnr if len(row) > task for value in [row[task]] if value is not None]
+
+
 def after_own_task(matrix: AccuracyMatrix) -> Optional[float]:
     """The mean of the accuracy matrix's diagonal; None when its first row already measures every task (joint)."""
     if len(matrix.psnr[0]) > 1:
         return None
-    return sum(row[-1] for row in matrix.psnr) / len(matrix.psnr)
+    diagonal = [value for row in matrix.psnr for value in [row[-1]] if value is not None]
+    return sum(diagonal) / len(diagonal)
 
 
 def depth_growth(matrix: AccuracyMatrix) -> Optional[List[Optional[float]]]:

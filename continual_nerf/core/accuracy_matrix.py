@@ -31,12 +31,13 @@ class AccuracyMatrix:
     """Rows are appended as tasks end; row i holds tasks 1..i+1."""
 
     num_tasks: int
-    psnr: List[List[float]] = field(default_factory=list)
-    """psnr[i][j]: mean PSNR (dB) over task j's test frames after training task i."""
-    ssim: List[List[float]] = field(default_factory=list)
-    """ssim[i][j]: mean SSIM over task j's test frames after training task i."""
+    psnr: List[List[Optional[float]]] = field(default_factory=list)
+    """psnr[i][j]: mean PSNR (dB) over task j's test frames after training task i; None (null): not available, the
+    test images of task j (an earlier session's) were gone."""
+    ssim: List[List[Optional[float]]] = field(default_factory=list)
+    """ssim[i][j]: mean SSIM over task j's test frames after training task i (None: not available)."""
     mean_psnr: List[float] = field(default_factory=list)
-    """Mean PSNR over all test frames of the tasks seen after task i."""
+    """Mean PSNR over all test frames of the tasks seen after task i (those whose images are there)."""
     steps: List[int] = field(default_factory=list)
     """Training step at which each row was measured."""
     depth_abs_rel: List[List[Optional[float]]] = field(default_factory=list)
@@ -56,19 +57,29 @@ class AccuracyMatrix:
     interrupted: stopped by Ctrl-C or SIGTERM after saving a checkpoint to resume from."""
 
     def add_row(
-        self, psnr: List[float], ssim: List[float], mean_psnr: float, step: int, depth: Optional[DepthRow] = None
+        self,
+        psnr: List[Optional[float]],
+        ssim: List[Optional[float]],
+        mean_psnr: float,
+        step: int,
+        depth: Optional[DepthRow] = None,
     ) -> None:
         self.psnr.append(psnr)
         self.ssim.append(ssim)
         self.mean_psnr.append(mean_psnr)
         self.steps.append(step)
         if depth is not None:
-            self.depth_abs_rel.append(depth.abs_rel)
-            self.depth_rmse.append(depth.rmse)
-            self.mean_depth_abs_rel.append(depth.mean_abs_rel)
-            self.mean_depth_rmse.append(depth.mean_rmse)
+            for earlier in self.psnr[len(self.depth_abs_rel) : -1]:  # an earlier session's capture had no depth maps
+                self._add_depth(DepthRow([None] * len(earlier), [None] * len(earlier), None, None))
+            self._add_depth(depth)
         self.finished = len(self.psnr) == self.num_tasks
         self.status = "finished" if self.finished else "training"
+
+    def _add_depth(self, depth: DepthRow) -> None:
+        self.depth_abs_rel.append(depth.abs_rel)
+        self.depth_rmse.append(depth.rmse)
+        self.mean_depth_abs_rel.append(depth.mean_abs_rel)
+        self.mean_depth_rmse.append(depth.mean_rmse)
 
     def write(self, directory: Path) -> Path:
         """Write atomically (temporary file, then rename) so a kill never leaves a half-written file."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from threading import Lock
 from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
 
@@ -36,6 +37,16 @@ from continual_nerf.core.continual_dataset import (
 from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.per_frame import TRAINING_FRAME
+from continual_nerf.core.sessions import (
+    SessionContext,
+    SessionRecord,
+    check_image_scale,
+    check_inside_scene_box,
+    in_world_frame,
+    joined,
+    record_of,
+    restricted,
+)
 from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, split_capture
 from continual_nerf.errors import ContinualConfigError, DatasetError, plural
 from continual_nerf.validated_config import ValidatedConfig
@@ -92,6 +103,13 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     """Not used: rays are sampled one pixel at a time."""
     pixel_sampler: tyro.conf.Suppress[PixelSamplerConfig] = field(default_factory=PixelSamplerConfig)
     """Not used: the datamanager samples the released tasks' pixels itself."""
+    accept_cameras_outside_scene_box: bool = False
+    """A run continued on a later capture (--pipeline.continue-with-new-capture): train on it even where its cameras
+    lie far outside the scene box the model was trained in (the scene grew); off: that is an error (its poses are
+    likely in another world frame)."""
+    earlier_sessions: tyro.conf.Suppress[Optional[Path]] = None
+    """Set by ns-train when a run continues earlier sessions: the file in its run folder recording their frames (from
+    the checkpoint it continues); None: the capture is the run's first session."""
     train_depth: tyro.conf.Suppress[bool] = False
     """Serve the open task's depth maps with its pixels: the pipeline sets it when its model trains on depth."""
 
@@ -118,6 +136,11 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
                 f"got {self.current_task_fraction}"
             )
         self._validate_replay_buffer()
+        if self.joint and self.earlier_sessions is not None:
+            raise ContinualConfigError(
+                "--pipeline.datamanager.joint trains on every image at once: it cannot continue earlier sessions, "
+                "whose images are not kept"
+            )
         if not 0 <= self.replay_buffer_share <= 1:
             raise ContinualConfigError(
                 f"--pipeline.datamanager.replay-buffer-share must be in [0, 1], got {self.replay_buffer_share}"
@@ -235,7 +258,28 @@ class ContinualDataManager(VanillaDataManager):
         """The open task: its pixels and the rays of every task up to it are served."""
         self.replay_buffer: Optional[ExperienceReplayBuffer] = None
         """Stored pixels of closed tasks the pipeline keeps (experience replay); None keeps none."""
+        path = config.earlier_sessions
+        self.earlier: Optional[SessionRecord] = None if path is None else SessionRecord.load(path)
+        """The earlier sessions of a continued run (their tasks come first); None: this capture is the first."""
         super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
+
+    @property
+    def earlier_tasks(self) -> int:
+        """Tasks of the earlier sessions, which come before this capture's."""
+        return 0 if self.earlier is None else self.earlier.num_tasks
+
+    @property
+    def session_first_step(self) -> int:
+        """The training step this capture's session starts at (0 for a run's first session)."""
+        return 0 if self.earlier is None else self.earlier.next_step
+
+    def session_of_task(self, task: int) -> int:
+        """The session (0-based) `task` belongs to."""
+        return 0 if self.earlier is None else self.earlier.session_of_task(task)
+
+    def capture_name(self) -> str:
+        """The capture this session reads, as messages name it."""
+        return str(self.config.data or getattr(self.config.dataparser, "data", "the capture"))
 
     @property
     def num_tasks(self) -> int:
@@ -263,9 +307,16 @@ class ContinualDataManager(VanillaDataManager):
         )
 
     def create_train_dataset(self) -> ContinualDataset:
+        self.task_split = split_capture(
+            self.train_dataparser_outputs, self.config.num_tasks, self.config.test_interval, self.capture_name()
+        )
+        if self.earlier is not None:
+            self._join_earlier_sessions(self.earlier)
+        return self.dataset_of_trajectory()
+
+    def dataset_of_trajectory(self) -> ContinualDataset:
+        """The training frames of the trajectory (`train_dataparser_outputs` and `task_split`), task by task."""
         outputs = self.train_dataparser_outputs
-        source = str(getattr(self.config.dataparser, "data", "the capture"))
-        self.task_split = split_capture(outputs, self.config.num_tasks, self.config.test_interval, source)
         task_of_frame = self.task_split.train_task_of_frame()
         frames = self.task_split.all_train_frames()
         dataset = ContinualDataset(
@@ -276,12 +327,49 @@ class ContinualDataManager(VanillaDataManager):
             camera_of_frame=camera_ids(outputs)[frames],
             serve_depth=self.config.train_depth,
         )
+        if self.earlier is not None:
+            earlier = self.earlier
+            dataset.keep_earlier_sessions(earlier.num_train_frames, earlier.valid_bits, earlier.valid_counts)
         if dataset.serve_depth and dataset.depth_maps is None:
             raise DatasetError(
-                f"{getattr(self.config.dataparser, 'data', 'the capture')}: has no depth maps (ScanNet depth/, TUM "
-                "depth.txt, transforms.json depth_file_path) for the model to train on; train continual-ngp instead"
+                f"{self.capture_name()}: has no depth maps (ScanNet depth/, TUM depth.txt, transforms.json "
+                "depth_file_path) for the model to train on; train continual-ngp instead"
             )
         return dataset
+
+    def _join_earlier_sessions(self, earlier: SessionRecord) -> None:
+        """Put this capture in the run's world frame after the earlier sessions' frames, its tasks after theirs."""
+        check_image_scale(earlier, self._image_scale())
+        outputs = in_world_frame(self.train_dataparser_outputs, earlier)
+        if not self.config.accept_cameras_outside_scene_box:
+            check_inside_scene_box(outputs, self.capture_name())
+        self.train_dataparser_outputs, self.task_split = joined(
+            earlier, outputs, self.task_split, camera_ids(outputs), capture_instants(outputs)
+        )
+
+    def sessions_record(self, released_tasks: int, model_options: Dict[str, Any]) -> SessionRecord:
+        """The record of every session so far, this one's up to its `released_tasks` (tasks never released are
+        dropped): what a later session continuing from a checkpoint of this run needs."""
+        earlier = self.earlier
+        this_session = released_tasks - self.earlier_tasks
+        context = SessionContext(
+            image_scale=self._image_scale(),
+            tasks_per_session=[*(earlier.tasks_per_session if earlier else []), this_session],
+            first_steps=[*(earlier.first_steps if earlier else []), self.session_first_step],
+            task_checkpoints=[*(earlier.task_checkpoints if earlier else []), *[""] * this_session],
+            data=[*(earlier.data if earlier else []), self.capture_name()],
+            model_options=model_options,
+        )
+        outputs = self.train_dataparser_outputs
+        record = record_of(
+            outputs,
+            self.task_split,
+            camera_ids(outputs),
+            capture_instants(outputs),
+            self.train_dataset.valid_pixels,
+            context,
+        )
+        return restricted(record, released_tasks)
 
     def create_eval_dataset(self) -> TestFrameDataset:
         """The test frames; each is rendered with the appearance code and pose correction of the training frame of
@@ -293,7 +381,9 @@ class ContinualDataManager(VanillaDataManager):
         )
         nearest = nearest_train_frames(self.task_split, capture_instants(outputs), camera_ids(outputs))
         test_outputs.cameras.metadata = {TRAINING_FRAME: torch.from_numpy(nearest)[:, None]}
-        return TestFrameDataset(test_outputs, scale_factor=self._image_scale())
+        dataset = TestFrameDataset(test_outputs, scale_factor=self._image_scale())
+        dataset.earlier_frames = 0 if self.earlier is None else self.earlier.num_test_frames
+        return dataset
 
     def setup_train(self) -> None:
         # no task opens here: a resumed run learns its task from the checkpoint, and must not read closed tasks' pixels
@@ -301,8 +391,12 @@ class ContinualDataManager(VanillaDataManager):
 
     def setup_eval(self) -> None:
         self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
-        # ns-eval and ns-render read these; they cover the test frames of every task
-        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(self.eval_dataset, device=self.device)
+        # ns-eval and ns-render read these; they cover the test frames of every task whose images are there
+        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(
+            self.eval_dataset,
+            image_indices=tuple(self.eval_dataset.available_frames()),  # type: ignore[arg-type]  # nerfstudio: Tuple[int, ...]
+            device=self.device,
+        )
         self.eval_dataloader = RandIndicesEvalDataloader(self.eval_dataset, device=self.device)
 
     def test_task_of_frame(self) -> torch.Tensor:
@@ -364,11 +458,12 @@ class ContinualDataManager(VanillaDataManager):
         """Open the task training starts or resumes in, once the images still to be read are known to be readable."""
         later_tasks = torch.nonzero(self.train_dataset.task_of_frame >= self.data_task).view(-1)
         check_image_headers(self.train_dataset, later_tasks.tolist())
-        check_image_headers(self.eval_dataset, range(len(self.eval_dataset)))
+        available = self.eval_dataset.available_frames()
+        check_image_headers(self.eval_dataset, available)
         if self.train_dataset.serve_depth and self.train_dataset.depth_maps is not None:
             self.train_dataset.depth_maps.check_headers(later_tasks.tolist())
         if self.eval_dataset.depth_maps is not None:  # the accuracy matrix measures depth on every test frame
-            self.eval_dataset.depth_maps.check_headers(range(len(self.eval_dataset)))
+            self.eval_dataset.depth_maps.check_headers(available)
         if self.train_dataset.mask_filenames is not None:  # closed tasks' too: a resumed run reads them again
             check_mask_headers(self.train_dataset, range(len(self.train_dataset)))
         self.train_dataset.open(self.data_task)

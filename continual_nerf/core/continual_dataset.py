@@ -59,8 +59,12 @@ class ContinualDataset(InputDataset):
         # nerfstudio's InputDataset would read each mask into its frame's batch, at the image's full size only; masks
         # are read here instead (read_mask), into the record of the pixels training may draw
         super().__init__(dataclasses.replace(dataparser_outputs, mask_filenames=None), scale_factor=scale_factor)
-        self.mask_filenames: Optional[List[Path]] = dataparser_outputs.mask_filenames
-        """Per frame a mask, 0 where its pixels never train (None: every pixel trains)."""
+        masks = dataparser_outputs.mask_filenames
+        self.mask_filenames: Optional[List[Optional[Path]]] = None if masks is None else list(masks)
+        """Per frame a mask, 0 where its pixels never train (None: every pixel trains; a frame's None: its pixels all
+        train, or an earlier session's frame, whose mask is recorded)."""
+        self.earlier_frames = 0
+        """Frames of a continued run's earlier sessions, first in the dataset: their images may be gone."""
         self.task_of_frame = torch.as_tensor(task_of_frame, dtype=torch.long)
         self.metadata[FRAME_TASK] = self.task_of_frame
         cameras = np.zeros_like(task_of_frame) if camera_of_frame is None else camera_of_frame
@@ -124,7 +128,8 @@ class ContinualDataset(InputDataset):
         """(H, W) bool of the frame as loaded: True where its mask (if any) is nonzero and inside its fisheye circle
         (if any)."""
         width, height = int(self.cameras.width[frame]), int(self.cameras.height[frame])
-        valid = torch.ones((height, width), dtype=torch.bool) if self.mask_filenames is None else read_mask(self, frame)
+        unmasked = self.mask_filenames is None or self.mask_filenames[frame] is None
+        valid = torch.ones((height, width), dtype=torch.bool) if unmasked else read_mask(self, frame)
         if self.crop_radius is not None and torch.isfinite(self.crop_radius[frame]):
             valid &= inside_circle(width, height, float(self.crop_radius[frame]))
         return valid
@@ -135,6 +140,20 @@ class ContinualDataset(InputDataset):
         if self.valid_pixels is None:
             return torch.randint(low, high, (num,), generator=generator)
         return self.valid_pixels.sample(low, high, num, generator)
+
+    def keep_earlier_sessions(self, frames: int, bits: Optional[Tensor], counts: Optional[Tensor]) -> None:
+        """The first `frames` frames are an earlier session's: their images may be gone, and the pixels their masks
+        and circles let train are `bits` and `counts` (ValidPixels' record of them, None: every pixel trains)."""
+        self.earlier_frames = frames
+        if bits is None or counts is None:
+            if self.valid_pixels is not None:  # this capture has masks or circles; the earlier sessions had neither
+                for frame in range(frames):
+                    self.valid_pixels.record(frame, self.trainable_pixels(frame))
+            return
+        if self.valid_pixels is None:
+            self.valid_pixels = ValidPixels(self.pixel_offsets)
+        self.valid_pixels.bits[: len(bits)] = bits
+        self.valid_pixels.valid_per_frame[: len(counts)] = counts
 
     def close(self) -> None:
         """Drop the open task's pixels and depth; no task's pixels are readable afterwards."""
@@ -153,6 +172,8 @@ class ContinualDataset(InputDataset):
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         self.check_open(image_idx)
+        if not self.for_training and image_idx < self.earlier_frames:
+            return read_image_if_kept(self, image_idx)
         return read_image(self, image_idx)
 
     def get_depth(self, image_idx: int) -> Tensor:
@@ -177,12 +198,17 @@ class TestFrameDataset(InputDataset):
     when the capture has them (nerfstudio's `depth_image`, and its rays' `directions_norm`: the model's depth metrics
     read them)."""
 
+    earlier_frames = 0
+    """Test frames of a continued run's earlier sessions, first in the dataset: their images may be gone."""
+
     def __init__(self, dataparser_outputs: DataparserOutputs, scale_factor: float = 1.0):
         super().__init__(dataparser_outputs, scale_factor=scale_factor)
         self.depth_maps = DepthMaps.of(dataparser_outputs, self.cameras)
         """The test frames' depth maps; None when the capture has none."""
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+        if image_idx < self.earlier_frames:
+            return read_image_if_kept(self, image_idx)
         return read_image(self, image_idx)
 
     def get_metadata(self, data: Dict) -> Dict:
@@ -194,6 +220,27 @@ class TestFrameDataset(InputDataset):
             DEPTH_KEY: self.depth_maps.read(frame)[..., None],
             DIRECTIONS_NORM: directions_norm(self.cameras, frame),
         }
+
+    def available_frames(self) -> List[int]:
+        """The frames whose images can be read: every frame but an earlier session's whose image is gone."""
+        filenames = self.image_filenames
+        return [frame for frame in range(len(self)) if frame >= self.earlier_frames or Path(filenames[frame]).is_file()]
+
+
+GONE_NOTICE: List[Path] = []
+"""The first image of an earlier session found gone (ns-render and ns-viewer say it once)."""
+
+
+def read_image_if_kept(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
+    """An earlier session's image, or a black one of its camera's size when it is gone (ns-render renders those frames
+    all the same; evaluation measures only the frames whose images are there)."""
+    filename = Path(dataset.image_filenames[image_idx])
+    if filename.exists():
+        return read_image(dataset, image_idx)
+    if not GONE_NOTICE:
+        GONE_NOTICE.append(filename)
+        print(f"{filename}: gone (an earlier session's image): its frame is shown against a black image", flush=True)
+    return np.zeros((int(dataset.cameras.height[image_idx]), int(dataset.cameras.width[image_idx]), 3), np.uint8)
 
 
 def read_image(dataset: InputDataset, image_idx: int) -> npt.NDArray[np.uint8]:
@@ -234,16 +281,23 @@ def check_image_headers(dataset: InputDataset, frames: Iterable[int]) -> None:
 
 
 def check_mask_headers(dataset: ContinualDataset, frames: Iterable[int]) -> None:
-    """Check from the file headers alone that each of `frames` has a one-channel mask of its image's size."""
+    """Check from the file headers alone that each of `frames` has a one-channel mask of its image's size (a frame
+    without one, of an earlier session, has nothing to check)."""
     for frame in frames:
-        mask_size(dataset, frame)
+        if dataset.mask_filenames is not None and dataset.mask_filenames[frame] is not None:
+            mask_size(dataset, frame)
+
+
+def mask_filename(dataset: ContinualDataset, frame: int) -> Path:
+    filename = None if dataset.mask_filenames is None else dataset.mask_filenames[frame]
+    assert filename is not None, "the frame has a mask file"
+    return filename
 
 
 def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
     """Width and height of the frame's mask, checked: one channel, of its image's size before or after the dataset's
     downscale."""
-    assert dataset.mask_filenames is not None
-    filename = dataset.mask_filenames[frame]
+    filename = mask_filename(dataset, frame)
     size, mode = header(filename, "mask")
     if mode not in MASK_MODES:
         raise DatasetError(f"{filename}: mask mode {mode} is not supported (one channel: 8-bit L or 1-bit)")
@@ -262,8 +316,7 @@ def mask_size(dataset: ContinualDataset, frame: int) -> Tuple[int, int]:
 def read_mask(dataset: ContinualDataset, frame: int) -> Tensor:
     """The frame's mask as its image is loaded, (H, W) bool, True where pixels train: a mask of the image's full size
     is downscaled with the image, one of the downscaled size is read as it is."""
-    assert dataset.mask_filenames is not None
-    filename = dataset.mask_filenames[frame]
+    filename = mask_filename(dataset, frame)
     loaded = int(dataset.cameras.width[frame]), int(dataset.cameras.height[frame])
     scale = 1.0 if mask_size(dataset, frame) == loaded else dataset.scale_factor
     try:

@@ -7,7 +7,7 @@ import dataclasses
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Mapping, Optional, Type
+from typing import Any, Dict, List, Literal, Mapping, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -17,19 +17,31 @@ from nerfstudio.engine.trainer import Trainer
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.markup import escape
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix, DepthRow
+from continual_nerf.core.change_guard import GuardCount, OpenTaskView, open_task_view
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, euclidean_depth_maps, trains_on_depth
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import AlignedEvalCameras, FrameScores, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
-from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.core.replay_oracle import ReplayOracle, depth_target, surface_distance
+from continual_nerf.core.sessions import (
+    SESSIONS_KEY,
+    SessionRecord,
+    model_options,
+    options_differing,
+    size_difference,
+    task_ranges,
+    with_earlier_rows,
+)
 from continual_nerf.core.task_budget import TaskBudget, TaskState
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.nerfstudio_compat import (
@@ -43,6 +55,12 @@ from continual_nerf.validated_config import ValidatedConfig
 
 ORACLE_PREFIX = "replay_oracle.model."
 """State-dict keys of the replay oracle's frozen copy in a checkpoint."""
+CONTINUE_OPTION = "--pipeline.continue-with-new-capture"
+"""The option that starts a new session from a loaded run (a resume command leaves it out)."""
+MODEL_PREFIX = "_model."
+"""State-dict keys of the model in a checkpoint (nerfstudio's VanillaPipeline)."""
+BUFFER_STATE = "replay_buffer._extra_state"
+"""State-dict key of the experience replay buffer in a checkpoint."""
 BASE_LR_KEY = "continual_base_lr"
 """Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
 POSE_GROUP = "camera_opt"
@@ -74,6 +92,16 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     test_pose_alignment_steps: int = 0
     """Before a test frame is measured, fit its pose to its image for this many steps with the field frozen (BARF's
     test-time pose alignment, for poses with errors of their own per image); 0 measures it from its given pose."""
+    continue_with_new_capture: bool = False
+    """With --load-dir (or --load-checkpoint): go on learning the capture given now as a new session, its tasks after
+    the loaded run's, the loaded model the replay oracle of every earlier task; the earlier capture is never read
+    again. Off: --load-dir resumes the loaded run on its own capture."""
+    change_guard: Literal["later-sessions", "every-task", "off"] = "later-sessions"
+    """Skip replayed rays of earlier tasks whose surface an open-task frame sees changed (the new images win where
+    they see a change): in the tasks of a continued run's later sessions, in every task, or never (the paper)."""
+    change_threshold: float = 0.1
+    """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
+    which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
 
     def validate(self) -> None:
         super().validate()
@@ -85,6 +113,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             raise ContinualConfigError(
                 f"--pipeline.test-pose-alignment-steps must be at least 0, got {self.test_pose_alignment_steps}"
             )
+        if not 0 < self.change_threshold < 1:
+            raise ContinualConfigError(f"--pipeline.change-threshold must be in (0, 1), got {self.change_threshold}")
         for name in ("lr_decay_start", "pose_refinement_start"):
             value = getattr(self, name)
             if not 0 <= value < 1:
@@ -115,8 +145,8 @@ class ContinualStatus:
     """Whether more tasks may still arrive."""
     progress: str
     """The open task's budget: what is left, or what training does once it is spent."""
-    psnr_rows: List[List[float]]
-    """The accuracy matrix so far: test PSNR per task after each finished task."""
+    psnr_rows: List[List[Optional[float]]]
+    """The accuracy matrix so far: test PSNR per task after each finished task (None: not available)."""
     mean_psnr: List[float]
     """Mean test PSNR over the test frames of the tasks seen, after each finished task."""
     finished: bool
@@ -162,7 +192,13 @@ class ContinualPipeline(VanillaPipeline):
                 CONSOLE.print(self.replay_buffer.describe(total), markup=False, soft_wrap=True)
         self.accuracy = AccuracyMatrix(num_tasks=self.known_tasks)
         self._clock_started = 0.0
-        self._open_frame_parameters(start=True)
+        self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
+        self.open_task_view: Optional[OpenTaskView] = None
+        """What the open task's frames show where the oracle renders otherwise (the change guard); None: not built."""
+        self.guard_count = GuardCount()
+        self._said_unavailable = False
+        # the first task has no earlier one to start from; a continued run's first task starts once its model is loaded
+        self._open_frame_parameters(start=False)
 
     @property
     def replays(self) -> bool:
@@ -221,18 +257,59 @@ class ContinualPipeline(VanillaPipeline):
 
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
         """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4), and their
-        depth targets with its rendered depth when it distils depth too."""
+        depth targets with its rendered depth when it distils depth too; with the change guard on, mark those whose
+        surface an open-task frame sees changed (REPLAY_SKIPPED), which teach neither."""
         is_replay = batch["is_replay"]
         if not is_replay.any():
             return
         image = batch["image"]
         replayed = ray_bundle[is_replay.to(image.device)]
+        outputs = self.replay_oracle.outputs(replayed)
+        image[is_replay] = outputs["rgb"].to(image.dtype)
         if self.distills_replay_depth:
-            rgb, depth = self.replay_oracle.render_with_depth(replayed, euclidean_depth_maps(self.config.model))
+            depth = depth_target(outputs, replayed, euclidean_depth_maps(self.config.model))
             batch[DEPTH_KEY][is_replay] = depth.to(batch[DEPTH_KEY].dtype)
-        else:
-            rgb = self.replay_oracle.render(replayed)
-        image[is_replay] = rgb.to(image.dtype)
+        distance = surface_distance(outputs)
+        if not self.guards_replay or distance is None:
+            return
+        view = self._open_task_view()
+        rays = (replayed.origins, replayed.directions, distance)
+        crossing = view.crosses_change(*(tensor.detach().float().cpu() for tensor in rays))
+        skipped = torch.zeros_like(is_replay)
+        skipped[is_replay] = crossing.to(is_replay.device)
+        batch[REPLAY_SKIPPED] = skipped
+        if self.distills_replay_depth:
+            batch[DEPTH_KEY][skipped] = 0.0  # no depth target where the surface changed
+        self.guard_count.replayed += int(is_replay.sum())
+        self.guard_count.skipped += int(skipped.sum())
+
+    @property
+    def guards_replay(self) -> bool:
+        """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard)."""
+        guard = self.config.change_guard
+        later_session = self.datamanager.session_of_task(self.task.current) > 0
+        return self.replays and (guard == "every-task" or (guard == "later-sessions" and later_session))
+
+    def _open_task_view(self) -> OpenTaskView:
+        """The open task's view for the change guard, rendered by the oracle once the task's pixels are read."""
+        task = self.datamanager.data_task
+        if self.open_task_view is None or self.open_task_view.task != task:
+            datamanager = self.datamanager
+            self.open_task_view = open_task_view(
+                task,
+                datamanager.train_dataset,
+                lambda indices: datamanager.train_ray_generator(indices.to(self.device)),
+                self._render_with_distance,
+                self.config.change_threshold,
+                datamanager.config.train_num_rays_per_batch,
+            )
+            self.guard_count = GuardCount()
+        return self.open_task_view
+
+    def _render_with_distance(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, torch.Tensor]:
+        rgb, distance = self.replay_oracle.render_with_distance(ray_bundle)
+        assert distance is not None, "the guard runs for models that render depth"
+        return rgb, distance
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
@@ -287,6 +364,7 @@ class ContinualPipeline(VanillaPipeline):
         if distributed.is_main():
             self.evaluate_seen_tasks(step, trainer.base_dir)
         if decision == TaskDecision.LAST_TASK_DONE:
+            self.close_task()  # its final checkpoint can go on learning a later capture
             trainer.stop_training = True
         else:
             self.open_next_task()
@@ -303,19 +381,38 @@ class ContinualPipeline(VanillaPipeline):
         return TaskDecision.LAST_TASK_DONE if self.is_last_task else TaskDecision.NEXT_TASK
 
     def before_task_switch(self) -> None:
-        """Runs at the end of every task but the last, while its pixels are still readable (e.g. EWC's Fisher)."""
+        """Runs at the end of every task, the last included, while its pixels are still readable (e.g. EWC's Fisher)."""
 
-    def open_next_task(self) -> None:
-        """Freeze the model as the replay oracle, close the open task and release the next one."""
+    def close_task(self) -> None:
+        """What the open task leaves while its pixels are readable: the baseline's estimates (EWC's Fisher), the replay
+        buffer's share of its pixels."""
         self.before_task_switch()
         if self.replay_buffer.enabled:
             self._keep_pixels_of_closing_task()
+        if self.guards_replay and distributed.is_main():
+            share = 100 * self.guard_count.share()
+            CONSOLE.print(
+                f"Change guard: {share:.1f} % of task {self.task.current + 1}'s replayed rays skipped (an open-task "
+                "frame sees their surface changed)"
+            )
+
+    def open_next_task(self) -> None:
+        """Close the open task, freeze the model as the replay oracle and release the next task."""
+        self.close_task()
+        self.freeze_oracle()
+        self.open_task(self.task.current + 1)
+
+    def freeze_oracle(self) -> None:
+        """The model as it is now becomes the replay oracle of every task so far."""
         if self.replays:
             distributed.copy_from_main(self.model, self.device)  # every rank's oracle: rank 0's weights, bit for bit
             self.replay_oracle.update(self.model)
-        self.task.current += 1
+
+    def open_task(self, task: int) -> None:
+        """Release `task` with its whole budget, reading its pixels now; its frames' parameters start to learn."""
+        self.task.current = task
         self.budget.start_task()
-        self.datamanager.release(self.task.current)
+        self.datamanager.release(task)
         self._open_frame_parameters(start=True)
 
     def _open_frame_parameters(self, start: bool) -> None:
@@ -359,10 +456,41 @@ class ContinualPipeline(VanillaPipeline):
         return self.get_average_image_metrics(loader, "eval", step, output_path, get_std)
 
     def evaluate_seen_tasks(self, step: int, output_dir: Path) -> None:
-        """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`."""
+        """Append row `current task` of the accuracy matrix, log it and write it to `output_dir`. An earlier session's
+        task none of whose test images can be read any more has no value (None: not available)."""
+        row_psnr, row_ssim, mean_psnr, depth = self._measure_seen_tasks()
+        self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step, depth)
+        path = self.accuracy.write(output_dir)
+        writer.put_dict(
+            name="Continual PSNR per task",
+            scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr) if v is not None},
+            step=step,
+        )
+        writer.put_scalar(name="Continual mean PSNR", scalar=mean_psnr, step=step)
+        if depth is not None and depth.mean_abs_rel is not None:
+            writer.put_scalar(name="Continual mean depth abs rel", scalar=depth.mean_abs_rel, step=step)
+        CONSOLE.print(
+            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
+            f"test PSNR per task {_format_row(row_psnr)}, mean {mean_psnr:.2f} dB"
+            f"{'' if depth is None else _format_depth(depth)} ({path})"
+        )
+
+    def _measure_seen_tasks(
+        self,
+    ) -> Tuple[List[Optional[float]], List[Optional[float]], float, Optional[DepthRow]]:
+        """Test PSNR and SSIM of every task released so far (None where none of its test images is left), the mean
+        PSNR over their test frames (NaN when none is left) and, for a capture with depth maps, their depth errors."""
         datamanager = self.datamanager
-        frames = datamanager.seen_test_frames()
+        seen_frames = datamanager.seen_test_frames()
+        available = set(datamanager.eval_dataset.available_frames())
+        frames = torch.tensor([frame for frame in seen_frames.tolist() if frame in available], dtype=torch.long)
+        seen = range(int(datamanager.test_task_of_frame()[seen_frames].max()) + 1)  # every task when training jointly
         depth_maps = datamanager.eval_dataset.depth_maps
+        if not len(frames):  # a stopped earlier session whose every test image is gone
+            self._say_unavailable(list(seen))
+            depth = None if depth_maps is None else DepthRow([None] * len(seen), [None] * len(seen), None, None)
+            return [None] * len(seen), [None] * len(seen), float("nan"), depth
         self.eval()
         scores = evaluate_frames(
             self.model,
@@ -373,25 +501,25 @@ class ContinualPipeline(VanillaPipeline):
             euclidean_depth_maps(self.config.model),
         )
         self.train()
-        psnr = scores.psnr
         tasks = datamanager.test_task_of_frame()[frames]
-        seen = range(int(tasks.max()) + 1)  # the tasks released so far; every task when training jointly
-        row_psnr = [float(psnr[tasks == j].mean()) for j in seen]
-        row_ssim = [float(scores.ssim[tasks == j].mean()) for j in seen]
+        row_psnr = [_mean_or_none(scores.psnr[tasks == j]) for j in seen]
+        row_ssim = [_mean_or_none(scores.ssim[tasks == j]) for j in seen]
+        self._say_unavailable([j for j in seen if row_psnr[j] is None])
         depth = None if depth_maps is None else depth_row(scores, tasks, seen)
-        self.accuracy.num_tasks = self.known_tasks  # grows while a capture folder is still being written
-        self.accuracy.add_row(row_psnr, row_ssim, float(psnr.mean()), step, depth)
-        path = self.accuracy.write(output_dir)
-        writer.put_dict(
-            name="Continual PSNR per task", scalar_dict={f"task_{j + 1}": v for j, v in enumerate(row_psnr)}, step=step
-        )
-        writer.put_scalar(name="Continual mean PSNR", scalar=float(psnr.mean()), step=step)
-        if depth is not None and depth.mean_abs_rel is not None:
-            writer.put_scalar(name="Continual mean depth abs rel", scalar=depth.mean_abs_rel, step=step)
+        return row_psnr, row_ssim, float(scores.psnr.mean()), depth
+
+    def _say_unavailable(self, tasks: List[int]) -> None:
+        """Say once that earlier sessions' tasks have no test image left to measure."""
+        if not tasks or self._said_unavailable:
+            return
+        self._said_unavailable = True
+        first = self.datamanager.task_split.test_frames[tasks[0]][0]
         CONSOLE.print(
-            f"[bold]Task {self.task.current + 1}/{self.known_tasks} done[/bold] at step {step}: "
-            f"test PSNR per task {_format_row(row_psnr)}, mean {float(psnr.mean()):.2f} dB"
-            f"{'' if depth is None else _format_depth(depth)} ({path})"
+            f"Tasks {task_ranges(tasks)} (earlier sessions): their test images are gone "
+            f"({self.datamanager.train_dataparser_outputs.image_filenames[first]}, ...): not available in the accuracy "
+            "matrix",
+            markup=False,
+            soft_wrap=True,
         )
 
     def _print_summary(self, step: int) -> None:
@@ -433,7 +561,59 @@ class ContinualPipeline(VanillaPipeline):
             "budget": self.budget.state(),
             "schedule": self.datamanager.schedule(),
             "accuracy": asdict(self.accuracy),
+            SESSIONS_KEY: self.sessions_record().state(),
         }
+
+    def sessions_record(self) -> SessionRecord:
+        """Every session so far, this one's up to its open task: what a later capture's session continues from."""
+        return self.datamanager.sessions_record(self.task.current + 1, model_options(self.config.model))
+
+    def continue_session(self, state: Dict[str, Any], step: int) -> None:
+        """Start this capture's first task from a checkpoint of the earlier sessions (`state`, at `step`): its model
+        with the earlier frames' rows, as the replay oracle of every earlier task, its replay buffer and accuracy rows;
+        the earlier sessions' open task, whatever was left of it, closed."""
+        earlier = self.datamanager.earlier
+        assert earlier is not None, "a continued run records its earlier sessions"
+        self.load_earlier_model(state, step, earlier.num_train_frames)
+        if BUFFER_STATE in state and self.replay_buffer.enabled:
+            self.replay_buffer.set_extra_state(state[BUFFER_STATE])
+        extra = state["_extra_state"]
+        self.accuracy = AccuracyMatrix(**extra["accuracy"])
+        self.accuracy.num_tasks = self.known_tasks
+        self.accuracy.finished, self.accuracy.status = False, "training"
+        self.budget.load_state(extra["budget"])
+        self._measure_stopped_task(step)
+        self.freeze_oracle()
+        self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
+        self.datamanager.open_released_task()
+        self.open_task(self.task.current)
+
+    def _measure_stopped_task(self, step: int) -> None:
+        """A run stopped in the middle of a task has no row for it: measured now, as the task closes."""
+        earlier_tasks = self.datamanager.earlier_tasks
+        if len(self.accuracy.psnr) >= earlier_tasks:
+            return
+        self.task.current = self.datamanager.released_task = earlier_tasks - 1
+        row_psnr, row_ssim, mean_psnr, depth = self._measure_seen_tasks()
+        self.accuracy.add_row(row_psnr, row_ssim, mean_psnr, step, depth)
+
+    def load_earlier_model(self, state: Dict[str, Any], step: int, earlier_rows: int) -> None:
+        """Load the model of an earlier session's checkpoint (`state`, at `step`) whose first `earlier_rows` per-frame
+        rows are this run's earlier training frames'; a model of another size is a one-line error naming how."""
+        model_state = {key[len(MODEL_PREFIX) :]: value for key, value in state.items() if key.startswith(MODEL_PREFIX)}
+        current = self.model.state_dict()
+        rows = self.model.per_frame_state_keys() if isinstance(self.model, ContinualNGPModel) else []
+        difference = size_difference(model_state, current, rows)
+        if difference is not None:
+            earlier = self.datamanager.earlier
+            saved = earlier.model_options if earlier is not None else {}
+            options = options_differing(saved, model_options(self.config.model))
+            raise ContinualConfigError(
+                f"its model differs in size from this run's ({'; '.join(options) or difference}): continue with the "
+                "model options it was trained with"
+            )
+        self.model.update_to_step(step)
+        self.model.load_state_dict(with_earlier_rows(model_state, current, rows, earlier_rows))
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.datamanager.check_resumable(state["schedule"])
@@ -448,8 +628,13 @@ def oracle_from_model(state_dict: Mapping[str, Any]) -> Dict[str, Any]:
     return {ORACLE_PREFIX + key: value for key, value in model_state_of(state_dict).items()}
 
 
-def _format_row(values: List[float]) -> str:
-    return "[" + ", ".join(f"{value:.2f}" for value in values) + "] dB"
+def _format_row(values: List[Optional[float]]) -> str:
+    """A row of the accuracy matrix as rich prints it ("n/a": not available)."""
+    return f"{_format_errors(values, '.2f')} dB"
+
+
+def _mean_or_none(values: torch.Tensor) -> Optional[float]:
+    return float(values.mean()) if len(values) else None
 
 
 def _optional(value: Optional[float], spec: str) -> str:
@@ -457,7 +642,8 @@ def _optional(value: Optional[float], spec: str) -> str:
 
 
 def _format_errors(values: List[Optional[float]], spec: str) -> str:
-    return "[" + ", ".join(_optional(value, spec) for value in values) + "]"
+    """A row of values as rich prints it ("n/a": none)."""
+    return escape("[" + ", ".join(_optional(value, spec) for value in values) + "]")
 
 
 def _format_depth(depth: DepthRow) -> str:

@@ -5,6 +5,7 @@ the viewer is added by the viewer's trainer (continual_nerf/viewer/live_trainer.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import signal
 import sys
 from dataclasses import dataclass, field
@@ -35,7 +36,19 @@ from continual_nerf.checkpoints import (
 from continual_nerf.compilation import warm_up
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.core.continual_pipeline import ORACLE_PREFIX, ContinualPipeline, ContinualPipelineConfig
+from continual_nerf.core.continual_pipeline import (
+    CONTINUE_OPTION,
+    ORACLE_PREFIX,
+    ContinualPipeline,
+    ContinualPipelineConfig,
+)
+from continual_nerf.core.sessions import (
+    SESSIONS_FILENAME,
+    checkpoint_record,
+    grow_optimizer_state,
+    same_capture,
+    task_checkpoints,
+)
 from continual_nerf.errors import CheckpointError, ContinualConfigError, ContinualNerfError, OutputError, first_line
 from continual_nerf.interrupts import EXIT_CODES, INTERRUPTS, resume_command
 from continual_nerf.nerfstudio_compat import (
@@ -73,6 +86,10 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
         super().validate()
         if self.max_num_iterations is not None and self.max_num_iterations < 1:
             raise ContinualConfigError(f"--max-num-iterations must be at least 1, got {self.max_num_iterations}")
+        if self.pipeline.continue_with_new_capture and self.load_dir is None and self.load_checkpoint is None:
+            raise ContinualConfigError(
+                "--pipeline.continue-with-new-capture needs the run to continue: --load-dir <run>/nerfstudio_models"
+            )
         if self.start_paused and self.several_processes:
             # the other processes would wait for rank 0's first step in a collective that times out
             raise ContinualConfigError("--start-paused needs one process: pause from the viewer once training runs")
@@ -119,10 +136,41 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
             CONSOLE.print(line, markup=False, soft_wrap=True)
 
     def resume_source(self) -> Optional[Path]:
-        """The run folder this run resumes from, if any."""
+        """The run folder this run resumes (or continues) from, if any."""
         if self.load_dir is not None:
             return self.load_dir.parent
         return None if self.load_checkpoint is None else self.load_checkpoint.parent.parent
+
+    def checkpoint_to_load(self) -> Optional[Path]:
+        """The checkpoint --load-dir (its latest, or --load-step's) or --load-checkpoint names, if any."""
+        if self.load_dir is not None:
+            return find_checkpoint(self.load_dir, self.load_step)
+        return self.load_checkpoint
+
+    def record_earlier_sessions(self, base_dir: Path) -> None:
+        """A run that continues earlier sessions (a new capture, or resuming a continued run) writes their record from
+        the checkpoint into its run folder, for its datamanager to read whenever the run is set up (ns-eval, ...)."""
+        try:
+            path = self.checkpoint_to_load()
+        except CheckpointError:
+            return  # nothing to load: the trainer's set-up says so in one line
+        if path is None:
+            return
+        state = read_checkpoint(path)
+        record = checkpoint_record(state, path)
+        if self.pipeline.continue_with_new_capture:
+            if record is None:
+                raise CheckpointError(f"{path}: written before runs recorded their sessions; it cannot be continued")
+            earlier = dataclasses.replace(
+                record, next_step=int(state["step"]) + 1, task_checkpoints=task_checkpoints(record, state, path)
+            )
+        elif record is not None and len(record.tasks_per_session) > 1:
+            earlier = record.first_sessions(len(record.tasks_per_session) - 1)
+        else:
+            return  # a first session resumes from its own capture
+        file = base_dir / SESSIONS_FILENAME
+        earlier.save(file)
+        self.pipeline.datamanager.earlier_sessions = file
 
     def save_config(self) -> None:
         """Claim the run folder for the run's life, then write nerfstudio's config.yml there, unless the folder holds
@@ -145,12 +193,15 @@ class ContinualTrainerConfig(ValidatedConfig, TrainerConfig):
                 CONSOLE.print(
                     f"{base_dir}: process {previous}, which held it, is no longer running", markup=False, soft_wrap=True
                 )
-            if self._holds_another_run(base_dir, source):
+            # a later session is a run of its own: it never writes into the folder of the run it continues
+            continues_itself = None if self.pipeline.continue_with_new_capture else source
+            if self._holds_another_run(base_dir, continues_itself):
                 release_run_folder(base_dir)
                 raise ContinualConfigError(
                     f"{base_dir} already holds a run; choose another --timestamp or --experiment-name, or continue "
                     f"that run with --load-dir {self.get_checkpoint_dir()}"
                 )
+            self.record_earlier_sessions(base_dir)
             super().save_config()
         for folder in (base_dir, source):
             for stale in remove_stale_partials(folder) if folder is not None else []:
@@ -341,7 +392,9 @@ class ContinualTrainer(DeferredPauseTrainer):
             raise SystemExit(EXIT_CODES[number])  # rank 0 saves, writes and says how to resume
         if step > first_step(self):
             self.save_checkpoint(step - 1)
-            how = f"step {step - 1} saved; resume with: {resume_command(self.checkpoint_dir, sys.argv)}"
+            # this run's own checkpoint resumes it, a continued run's too: without starting another session
+            command = resume_command(self.checkpoint_dir, sys.argv, dropped=[CONTINUE_OPTION])
+            how = f"step {step - 1} saved; resume with: {command}"
         elif self._resumed_from is not None:
             how = f"no step trained since resuming; resume with: {resume_command(self._resumed_from, sys.argv)}"
         else:
@@ -388,21 +441,28 @@ class ContinualTrainer(DeferredPauseTrainer):
             raise
 
     def _load_checkpoint(self) -> None:
-        """Resume from --load-dir (latest or --load-step) or --load-checkpoint: nerfstudio's states plus the RNGs."""
-        if self.config.load_dir is not None:
-            path = find_checkpoint(self.config.load_dir, self.config.load_step)
-        elif self.config.load_checkpoint is not None:
-            path = self.config.load_checkpoint
-        else:
+        """Resume from --load-dir (latest or --load-step) or --load-checkpoint: nerfstudio's states plus the RNGs; or,
+        with --pipeline.continue-with-new-capture, go on from there on a new capture."""
+        first_step_of_session = self.pipeline.datamanager.session_first_step
+        if self.config.max_num_iterations != UNBOUNDED_ITERATIONS:  # the earlier sessions' steps come first
+            assert self.config.max_num_iterations is not None, "setup() sets it before loading"
+            self.config.max_num_iterations += first_step_of_session
+        path = self.config.checkpoint_to_load()
+        if path is None:
             return super()._load_checkpoint()
         state = read_checkpoint(path)
         self._resumed_from = path.parent
         check_method(state, path, self.config.method_name)
+        if self.config.pipeline.continue_with_new_capture:
+            return self._continue_on_new_capture(state, path)
         self._load_states(state, path)
         pipeline = self.pipeline
         accuracy = pipeline.accuracy
         if accuracy.finished:
-            raise CheckpointError(f"{path}: its run already trained all {accuracy.num_tasks} tasks")
+            raise CheckpointError(
+                f"{path}: its run already trained all {accuracy.num_tasks} tasks (to go on learning a later capture, "
+                "add --pipeline.continue-with-new-capture True)"
+            )
         self._check_budget_reaches(state["step"], path)
         check_resumable(state, path, find_checkpoint(path.parent, None))
         if distributed.is_main():  # the other ranks keep their own seeds (--machine.seed + rank): their rays differ
@@ -411,6 +471,43 @@ class ContinualTrainer(DeferredPauseTrainer):
         CONSOLE.print(
             f"Resuming from {path} at step {first_step(self)}: task {pipeline.task.current + 1}/"
             f"{pipeline.known_tasks}, {pipeline.budget.iterations_done} iterations into it"
+        )
+
+    def _continue_on_new_capture(self, state: Dict[str, Any], path: Path) -> None:
+        """Start this capture's tasks after the checkpoint's: its model, optimizers and random generators go on as if
+        the captures were one, the model the replay oracle of every earlier task."""
+        pipeline, datamanager = self.pipeline, self.pipeline.datamanager
+        check_resumable(state, path, find_checkpoint(path.parent, None))  # a closed task's weights alone go on no run
+        record = checkpoint_record(state, path)
+        assert record is not None, "record_earlier_sessions read it"
+        if same_capture(record, datamanager.train_dataparser_outputs.image_filenames[record.num_frames :]):
+            raise CheckpointError(
+                f"{path}: its last session was trained on {datamanager.capture_name()}: a later session needs a later "
+                "capture (to resume an unfinished run, leave --pipeline.continue-with-new-capture out)"
+            )
+        try:
+            pipeline.continue_session(state["pipeline"], state["step"])
+            for name, optimizer in self.optimizers.optimizers.items():
+                parameters = [p for group in optimizer.param_groups for p in group["params"]]
+                optimizer.load_state_dict(grow_optimizer_state(state["optimizers"][name], parameters))
+            if self.config.load_scheduler:
+                self.optimizers.load_schedulers(state.get("schedulers", {}))
+            self.grad_scaler.load_state_dict(state["scalers"])
+        except ContinualNerfError as error:
+            raise CheckpointError(f"{path}: {error}") from None
+        except (RuntimeError, KeyError, ValueError) as error:
+            raise CheckpointError(
+                f"{path}: does not fit this run ({first_line(error)}); continue with the options it was trained with"
+            ) from None
+        if distributed.is_main():
+            restore_rng_states(state["rng"])
+        set_resume_step(self, state["step"] + 1)
+        earlier = datamanager.earlier_tasks
+        CONSOLE.print(
+            f"Continuing {path} (tasks 1-{earlier}) on {datamanager.capture_name()}: tasks {earlier + 1}-"
+            f"{pipeline.known_tasks} from step {first_step(self)}",
+            markup=False,
+            soft_wrap=True,
         )
 
     def _check_budget_reaches(self, step: int, path: Path) -> None:

@@ -15,7 +15,7 @@ from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
 from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, depth_errors
-from continual_nerf.core.distillation_loss import distillation_loss
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, distillation_loss
 from continual_nerf.core.per_frame import (
     FRAME_CAMERA,
     FRAME_TASK,
@@ -165,6 +165,16 @@ class ContinualNGPModel(NerfactoModel):
             *(self.camera_optimizer.parameters()),
         ]
 
+    def per_frame_state_keys(self) -> List[str]:
+        """State-dict keys of the tensors that hold one row per training frame (codes, colour transforms, pose
+        corrections and their code_of_frame lookups): a model of a longer trajectory holds more rows."""
+        per_frame = {id(parameter) for parameter in self._per_frame_parameters()}
+        return [
+            key
+            for key, value in self.state_dict(keep_vars=True).items()
+            if id(value) in per_frame or key.endswith("code_of_frame")
+        ]
+
     @property
     def fits_color_transforms(self) -> bool:
         """Whether a task's colour transforms start fitted to its frames (--pipeline.model.color-transform-start)."""
@@ -229,7 +239,11 @@ class ContinualNGPModel(NerfactoModel):
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if "is_replay" in batch:
             del loss_dict["rgb_loss"]
-            loss_dict.update(distillation_loss(outputs["rgb"], batch["image"].to(self.device), batch["is_replay"]))
+            loss_dict.update(
+                distillation_loss(
+                    outputs["rgb"], batch["image"].to(self.device), batch["is_replay"], batch.get(REPLAY_SKIPPED)
+                )
+            )
         return loss_dict
 
     def get_image_metrics_and_images(

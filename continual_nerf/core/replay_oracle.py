@@ -64,21 +64,41 @@ class ReplayOracle(nn.Module):
     def render(self, ray_bundle: RayBundle) -> torch.Tensor:
         """Colour (N, 3) the frozen copy renders along each ray, each ray with the appearance code and refined pose of
         the frame it came from, as training rendered that frame."""
-        return self._outputs(ray_bundle)["rgb"]
+        return self.outputs(ray_bundle)["rgb"]
+
+    @torch.no_grad()
+    def render_with_distance(self, ray_bundle: RayBundle) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """`render`'s colour and `surface_distance` along each ray."""
+        outputs = self.outputs(ray_bundle)
+        return outputs["rgb"], surface_distance(outputs)
 
     @torch.no_grad()
     def render_with_depth(self, ray_bundle: RayBundle, euclidean: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Colour (N, 3) as `render`, and the depth (N, 1) the copy renders along each ray: its expected depth as
-        z-depth (or, `euclidean`, as distance along the ray, as the depth maps hold it), 0 (no depth target) where
-        less than half of the ray's light comes from a surface it has learned."""
-        outputs = self._outputs(ray_bundle)
-        depth = outputs["expected_depth"]
-        if not euclidean:
-            depth = depth / ray_bundle.metadata[DIRECTIONS_NORM]
-        return outputs["rgb"], torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, depth, 0.0)
+        """Colour (N, 3) as `render`, and the `depth_target` (N, 1) of each ray."""
+        outputs = self.outputs(ray_bundle)
+        return outputs["rgb"], depth_target(outputs, ray_bundle, euclidean)
 
-    def _outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+    @torch.no_grad()
+    def outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+        """What the frozen copy renders along each ray (as `render` renders it): its model's outputs."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
         assert ray_bundle.camera_indices is not None, "replayed rays carry their training frame"
         ray_bundle.metadata[TRAINING_FRAME] = ray_bundle.camera_indices
         return self.model(ray_bundle)
+
+
+def surface_distance(outputs: Dict[str, torch.Tensor]) -> Optional[torch.Tensor]:
+    """The distance (N,) along each ray to the surface the oracle renders (its median depth), None for a model that
+    renders no depth."""
+    depth = outputs.get("depth")
+    return None if depth is None else depth.view(-1)
+
+
+def depth_target(outputs: Dict[str, torch.Tensor], ray_bundle: RayBundle, euclidean: bool = False) -> torch.Tensor:
+    """The depth (N, 1) the oracle renders along each ray: its expected depth as z-depth (or, `euclidean`, as distance
+    along the ray, as the depth maps hold it), 0 (no depth target) where less than half of the ray's light comes from
+    a surface it has learned."""
+    depth = outputs["expected_depth"]
+    if not euclidean:
+        depth = depth / ray_bundle.metadata[DIRECTIONS_NORM]
+    return torch.where(outputs["accumulation"] >= MIN_ACCUMULATION, depth, 0.0)

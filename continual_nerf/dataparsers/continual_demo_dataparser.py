@@ -4,6 +4,7 @@ flaws: `demo_capture.py`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -26,6 +27,8 @@ from continual_nerf.metadata_keys import DEPTH_FILENAMES, DEPTH_UNIT_SCALE_FACTO
 from continual_nerf.validated_config import ValidatedConfig
 
 DemoScene = Literal["room", "street", "rooms", "long-street"]
+SceneChange = Literal["none", "object-moved", "wall-repainted"]
+"""What a later session finds changed in the scene."""
 DEFAULT_FRAMES: Dict[str, int] = {"room": 120, "street": 120, "rooms": 480, "long-street": 480}
 """Capture instants of each scene when --num-frames is not given: the long scenes keep the short ones' density."""
 RIGS = ("street", "long-street")
@@ -72,6 +75,17 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
     pose_noise_kind: PoseNoiseKind = "smooth"
     """How the pose errors vary along the capture: smooth (drift, latency: VIO, motion capture) or drawn anew for
     every instant (each image registered on its own: COLMAP)."""
+    change: SceneChange = "none"
+    """The scene as a later session finds it: object-moved (a crate, in the street a parked car, near the middle of
+    the path moved along the wall the camera looks at) or wall-repainted (a stretch of that wall, or facade, painted
+    over); none: as it was."""
+    laps: int = 1
+    """Times the camera walks the path (the vehicle drives the street), each lap's instants after the last's; with
+    --change the last lap finds the scene changed: a first and a later session in one capture (the joint bound's)."""
+    start_instant: int = 0
+    """First capture instant returned: a capture cut into sessions (instants before it belong to an earlier one)."""
+    end_instant: Optional[int] = None
+    """Capture instant the returned frames stop before (None: the end of the path)."""
     depth_noise: float = 0.0
     """Depth maps with a sensor's noise: its standard deviation in metres at 1 m, growing with the square of the depth
     (a Kinect: about 0.0015); 0: exact depth."""
@@ -86,7 +100,7 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
 
     def validate(self) -> None:
         super().validate()
-        for name in ("num_frames", "width", "height", "exposure_segments"):
+        for name in ("num_frames", "width", "height", "exposure_segments", "laps"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be at least 1, got {value}")
@@ -96,6 +110,13 @@ class ContinualDemoDataParserConfig(ValidatedConfig, DataParserConfig):
             value = getattr(self, name)
             if not 0 <= value < 1:
                 raise ContinualConfigError(f"continual-demo --{name.replace('_', '-')} must be in [0, 1), got {value}")
+        instants = self.frames * self.laps
+        end = instants if self.end_instant is None else self.end_instant
+        if not 0 <= self.start_instant < end <= instants:
+            raise ContinualConfigError(
+                f"continual-demo --start-instant {self.start_instant} --end-instant {self.end_instant}: must cut a part "
+                f"of the capture's {instants} instants (0 <= start < end <= {instants})"
+            )
         for name in ("pose_noise_degrees", "pose_noise_translation", "depth_noise", "depth_edge_holes"):
             value = getattr(self, name)
             if not value >= 0:
@@ -134,6 +155,16 @@ class DemoCapture:
     """(N,) capture instant of each image (the street's three cameras share one)."""
     cameras: np.ndarray
     """(N,) camera of each image: 0 in the room; 0, 1, 2 (front, front-left, front-right) in the street."""
+    last_lap_scene: Optional[demo_scene.Scene] = None
+    """The scene the last lap sees when it differs from the first laps' (--change with --laps); None: `scene`."""
+    last_lap_start: int = 0
+    """The first image of the last lap."""
+
+    def scene_of(self, image: int) -> demo_scene.Scene:
+        """The scene as image `image` sees it."""
+        if self.last_lap_scene is not None and image >= self.last_lap_start:
+            return self.last_lap_scene
+        return self.scene
 
 
 class ContinualDemoDataParser(DataParser):
@@ -143,13 +174,35 @@ class ContinualDemoDataParser(DataParser):
 
     def _scene_folder(self) -> Path:
         c = self.config
-        return c.data / f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}"
+        changed = "" if c.change == "none" else f"_{c.change}"
+        laps = "" if c.laps == 1 else f"_laps{c.laps}"
+        return c.data / (
+            f"{c.scene}_{c.width}x{c.height}_{c.frames}frames_fov{c.fov_degrees:g}_seed{c.seed}{changed}{laps}"
+        )
 
     def _focal(self) -> float:
         return self.config.width / 2 / np.tan(np.deg2rad(self.config.fov_degrees) / 2)
 
     def capture(self) -> DemoCapture:
-        """The scene and its images' exact poses, instants and cameras."""
+        """The scene and its images' exact poses, instants and cameras: --laps times the path, the last lap seeing the
+        scene as --change leaves it."""
+        lap = self._lap()
+        changed = self._changed(lap.scene)
+        laps = self.config.laps
+        if laps == 1:
+            return dataclasses.replace(lap, scene=changed)
+        per_lap = int(lap.instants.max()) + 1
+        return DemoCapture(
+            lap.scene,
+            np.concatenate([lap.poses] * laps),
+            np.concatenate([lap.instants + k * per_lap for k in range(laps)]),
+            np.tile(lap.cameras, laps),
+            last_lap_scene=changed,
+            last_lap_start=(laps - 1) * len(lap.poses),
+        )
+
+    def _lap(self) -> DemoCapture:
+        """One walk of the path through the scene as it was."""
         rng = np.random.default_rng(self.config.seed)
         count, scene_name = self.config.frames, self.config.scene
         if scene_name in RIGS:
@@ -163,7 +216,23 @@ class ContinualDemoDataParser(DataParser):
         num_rooms = demo_scene.ROOMS if scene_name == "rooms" else 1
         scene = demo_scene.rooms(rng) if scene_name == "rooms" else demo_scene.room(rng)
         frames = np.arange(count)
-        return DemoCapture(scene, demo_scene.camera_path(count, rng, num_rooms), frames, np.zeros_like(frames))
+        path = demo_scene.camera_path(count, rng, num_rooms)
+        return DemoCapture(scene, path, frames, np.zeros_like(frames))
+
+    def _changed(self, scene: demo_scene.Scene) -> demo_scene.Scene:
+        """The scene as --change leaves it (after the whole layout is drawn: nothing else moves)."""
+        street = self.config.scene in RIGS
+        if self.config.change == "object-moved":
+            return demo_street.with_car_moved(scene) if street else demo_scene.with_object_moved(scene)
+        if self.config.change == "wall-repainted":
+            return demo_street.with_facade_repainted(scene) if street else demo_scene.with_wall_repainted(scene)
+        return scene
+
+    def returned_frames(self, capture: DemoCapture) -> np.ndarray:
+        """The frames of the instants --start-instant to --end-instant, in capture order."""
+        c = self.config
+        end = c.frames * c.laps if c.end_instant is None else c.end_instant
+        return np.nonzero((capture.instants >= c.start_instant) & (capture.instants < end))[0]
 
     def _render_scene(self, folder: Path, capture: DemoCapture) -> None:
         """Render every frame into `folder` (and its transforms.json, exact poses)."""
@@ -173,7 +242,7 @@ class ContinualDemoDataParser(DataParser):
         frames = []
         for i, c2w in enumerate(capture.poses):
             image = demo_scene.render_view(
-                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene
+                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene_of(i)
             )
             Image.fromarray(image).save(folder / "images" / f"frame_{i:05d}.png")
             frames.append(
@@ -190,7 +259,7 @@ class ContinualDemoDataParser(DataParser):
         rng = demo_capture.effect_rng(c.seed, demo_capture.DEPTH_STREAM)
         for i, c2w in enumerate(capture.poses):
             exact = demo_scene.render_depth(
-                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene
+                c2w, focal, focal, c.width / 2, c.height / 2, c.width, c.height, capture.scene_of(i)
             )
             depth = exact if c.depth_sensor.exact else demo_capture.sensed_depth(exact, c.depth_sensor, rng)
             np.save(folder / f"frame_{i:05d}.npy", depth)
@@ -260,6 +329,11 @@ class ContinualDemoDataParser(DataParser):
             write_folder(depth, lambda partial: self._render_depth(partial, capture))
         centre = (scene.lo + scene.hi) / 2
         scale = 2.0 / float((scene.hi - scene.lo).max())  # the scene's longest side spans nerfstudio's [-1, 1] box
+        kept = self.returned_frames(capture)
+        poses, capture = (
+            poses[kept],
+            dataclasses.replace(capture, instants=capture.instants[kept], cameras=capture.cameras[kept]),
+        )
         scaled = poses.copy()
         scaled[:, :, 3] = (poses[:, :, 3] - centre) * scale
         focal = self._focal()
@@ -277,10 +351,10 @@ class ContinualDemoDataParser(DataParser):
         transform[:, 3] = torch.from_numpy(-centre).float()
         rig = {"time_group": capture.instants, "camera_id": capture.cameras} if c.scene in RIGS else {}
         metadata: Dict[str, Any] = {key: torch.from_numpy(value).long() for key, value in rig.items()}
-        metadata[DEPTH_FILENAMES] = [depth / f"frame_{i:05d}.npy" for i in range(len(poses))]
+        metadata[DEPTH_FILENAMES] = [depth / f"frame_{i:05d}.npy" for i in kept]
         metadata[DEPTH_UNIT_SCALE_FACTOR] = 1.0  # metres
         return DataparserOutputs(
-            image_filenames=[images / f"frame_{i:05d}.png" for i in range(len(poses))],
+            image_filenames=[images / f"frame_{i:05d}.png" for i in kept],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,

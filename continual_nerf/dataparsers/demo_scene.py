@@ -10,8 +10,9 @@ Poses are exact; colours come from analytic textures.
 from __future__ import annotations
 
 import colorsys
+import dataclasses
 from dataclasses import dataclass
-from typing import Callable, List
+from typing import Callable, List, Optional
 
 import numpy as np
 
@@ -37,6 +38,8 @@ class Crate:
 
 SurfaceColour = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 """Colour of a scene's bounding box seen from inside, at hit points (N, 3), given the axis hit and its side."""
+SurfaceMask = Callable[[np.ndarray], np.ndarray]
+"""Which hit points (N, 3) of a surface are of one kind (the street's windows)."""
 
 
 @dataclass(frozen=True)
@@ -256,3 +259,50 @@ def render_depth(
         c2w, fx, fy, cx, cy, *np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     )
     return (hit_distances(origins, dirs, scene) / lengths).reshape(height, width).astype(np.float32)
+
+
+MOVE_DISTANCE = 1.5
+"""How far the room's moved crate goes along the room, metres: half the spacing of the crates on its wall."""
+PAINT = np.array([0.85, 0.32, 0.38])
+"""The colour a repainted stretch of wall gets."""
+REPAINTED_LENGTH = 3.0
+"""Length of the room's repainted stretch of wall, metres."""
+
+
+def viewed_crates(scene: Scene) -> List[int]:
+    """The crates against the wall the camera looks at (+y), partition walls aside."""
+    return [
+        index
+        for index, crate in enumerate(scene.crates)
+        if (crate.lo[1] + crate.hi[1]) / 2 > 0 and crate.hi[1] < scene.hi[1] - 1e-6
+    ]
+
+
+def with_object_moved(scene: Scene, distance: float = MOVE_DISTANCE, candidates: Optional[List[int]] = None) -> Scene:
+    """`scene` with the object nearest the middle of its length (among `candidates`, the crates against the viewed
+    wall by default) moved `distance` metres along it."""
+    chosen = viewed_crates(scene) if candidates is None else candidates
+    middle = (scene.lo[0] + scene.hi[0]) / 2
+    index = min(chosen, key=lambda i: abs((scene.crates[i].lo[0] + scene.crates[i].hi[0]) / 2 - middle))
+    crate = scene.crates[index]
+    shift = np.array([distance, 0.0, 0.0])
+    moved = Crate(lo=crate.lo + shift, hi=crate.hi + shift, rgb=crate.rgb)
+    return dataclasses.replace(scene, crates=[moved if i == index else c for i, c in enumerate(scene.crates)])
+
+
+def with_wall_repainted(scene: Scene, length: float = REPAINTED_LENGTH, keep: Optional[SurfaceMask] = None) -> Scene:
+    """`scene` with a stretch of the viewed (+y) wall, `length` metres about the middle of its length, painted over
+    (its tiles stay: paint shows them), except where `keep` says (the street's windows)."""
+    middle = (scene.lo[0] + scene.hi[0]) / 2
+    surface = scene.surface
+
+    def repainted(points: np.ndarray, axis: np.ndarray, positive: np.ndarray) -> np.ndarray:
+        colour = surface(points, axis, positive)
+        x, z = points[:, 0], points[:, 2]
+        painted = (axis == 1) & positive & (np.abs(x - middle) < length / 2)
+        if keep is not None:
+            painted &= ~keep(points)
+        colour[painted] = (PAINT * (0.8 + 0.2 * checker(x, z, 0.5))[:, None])[painted]
+        return colour
+
+    return dataclasses.replace(scene, surface=repainted)

@@ -9,7 +9,15 @@ from typing import List, Tuple
 
 import numpy as np
 
-from continual_nerf.dataparsers.demo_scene import Crate, Scene, checker, hue_along, look_matrices
+from continual_nerf.dataparsers.demo_scene import (
+    Crate,
+    Scene,
+    checker,
+    hue_along,
+    look_matrices,
+    with_object_moved,
+    with_wall_repainted,
+)
 
 STREET_MIN = np.array([-40.0, -6.0, 0.0])
 STREET_MAX = np.array([40.0, 6.0, 12.0])
@@ -48,7 +56,7 @@ def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray, s
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     colour = np.empty_like(points)
     facade = axis == 1
-    window = ((x % 2.5) > 0.6) & ((x % 2.5) < 1.9) & ((z % 3.0) > 0.9) & ((z % 3.0) < 2.4) & (z > 2.5)
+    window = windows(points)
     bands = 0.8 + 0.2 * checker(x, z, 1.25)
     walls = hue_along(x + 3.0 * positive, start, end, 0.45, 0.9) * bands[:, None]
     glass = np.array([0.15, 0.2, 0.3]) + 0.1 * np.sin(x / 3.0)[:, None]
@@ -67,6 +75,32 @@ def _street_colour(points: np.ndarray, axis: np.ndarray, positive: np.ndarray, s
         * (0.7 + 0.3 * checker(y, z, 1.0))[ends, None]
     )
     return colour
+
+
+def windows(points: np.ndarray) -> np.ndarray:
+    """Which of the facades' points (N, 3) are windows."""
+    x, z = points[:, 0], points[:, 2]
+    return ((x % 2.5) > 0.6) & ((x % 2.5) < 1.9) & ((z % 3.0) > 0.9) & ((z % 3.0) < 2.4) & (z > 2.5)
+
+
+MOVE_DISTANCE = 4.5
+"""How far the street's moved car goes along the kerb, metres: half the spacing of the parked cars."""
+REPAINTED_LENGTH = 12.0
+"""Length of the street's repainted stretch of facade, metres."""
+CAR_Y = 3.8
+"""Distance of the parked cars' centres from the street's middle, metres."""
+
+
+def with_car_moved(scene: Scene) -> Scene:
+    """`scene` with the parked car on the left kerb (+y) nearest the middle of the street moved along it."""
+    cars = [i for i, c in enumerate(scene.crates) if abs((c.lo[1] + c.hi[1]) / 2 - CAR_Y) < 1e-6]
+    return with_object_moved(scene, MOVE_DISTANCE, cars)
+
+
+def with_facade_repainted(scene: Scene) -> Scene:
+    """`scene` with a stretch of the left (+y) facade, about the middle of the street, painted over (not its
+    windows)."""
+    return with_wall_repainted(scene, REPAINTED_LENGTH, keep=windows)
 
 
 def _street_objects(rng: np.random.Generator, start: float, end: float) -> List[Crate]:

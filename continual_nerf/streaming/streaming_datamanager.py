@@ -23,7 +23,7 @@ from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from continual_nerf.core import distributed
-from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig, subset_outputs
+from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.continual_dataset import ContinualDataset
 from continual_nerf.core.task_split import TaskSplit, split_into_tasks
 from continual_nerf.dataparsers.capture_folder import CaptureTasks, StreamFrame, announce_training
@@ -109,13 +109,13 @@ class StreamingDataManager(ContinualDataManager):
 
     @property
     def num_tasks(self) -> int:
-        """Tasks released so far (the datasets hold their frames)."""
-        return len(self._train_frames)
+        """Tasks released so far (the datasets hold their frames), a continued run's earlier sessions' first."""
+        return self.earlier_tasks + len(self._train_frames)
 
     def tasks_available(self) -> int:
-        """Tasks complete in the capture folder, at most --max-tasks."""
+        """Tasks complete in the capture folder, at most --max-tasks, after the earlier sessions' tasks."""
         count = len(self.capture.tasks)
-        return min(count, self.config.max_tasks) if self.config.max_tasks else count
+        return self.earlier_tasks + (min(count, self.config.max_tasks) if self.config.max_tasks else count)
 
     @property
     def capture_finished(self) -> bool:
@@ -134,27 +134,24 @@ class StreamingDataManager(ContinualDataManager):
         self.frames.extend(frames)
         self.task_split = TaskSplit(train_frames=tuple(self._train_frames), test_frames=tuple(self._test_frames))
         self.train_dataparser_outputs = self.capture.outputs(self.frames)
+        if self.earlier is not None:  # a continued run: its earlier sessions' tasks come first
+            self._join_earlier_sessions(self.earlier)
 
     def create_train_dataset(self) -> ContinualDataset:
         if not self.frames:
             # training starts on the first task; ns-eval, ns-render and ns-viewer see every task there is
             if self.test_mode != "val":
                 self.capture.poll()
-            for task in range(1 if self.test_mode == "val" else self.tasks_available()):
+            for task in range(1 if self.test_mode == "val" else self.tasks_available() - self.earlier_tasks):
                 self._append_task(self.capture.tasks[task])
-        return ContinualDataset(
-            subset_outputs(self.train_dataparser_outputs, self.task_split.all_train_frames()),
-            self.task_split.train_task_of_frame(),
-            scale_factor=self._image_scale(),
-            for_training=self.test_mode == "val",
-        )
+        return self.dataset_of_trajectory()
 
     def release(self, task: int) -> None:
         """Grow the datasets by the tasks up to `task`, then release it as the batch mode does."""
         if distributed.is_distributed():
             self._cut_as_main_did(task)
         while self.num_tasks <= task:
-            self._append_task(self.capture.tasks[self.num_tasks])
+            self._append_task(self.capture.tasks[self.num_tasks - self.earlier_tasks])
         self.train_dataset = self.create_train_dataset()
         self.eval_dataset = self.create_eval_dataset()
         self.setup_eval()
@@ -166,14 +163,17 @@ class StreamingDataManager(ContinualDataManager):
         """Rank 0 found `task` complete: read the capture until it is here too, and cut it where rank 0 did (the
         frames reach every process in the same order, but not at the same time, and "Next task now" cuts early)."""
         main = distributed.is_main()
+        task -= self.earlier_tasks  # the capture's own numbering
         frames = distributed.decided_by_main(len(self.capture.tasks[task]) if main else 0, self.device)
         if not main:
             self.capture.wait_until(lambda: self.capture.frames_from(task) >= frames)
             self.capture.cut_task(task, frames)
 
     def resume_at(self, task: int) -> None:
-        if self.test_mode == "val" and task > 0:
-            raise ContinualConfigError("continual-ngp-stream cannot resume training from a checkpoint after task 1")
+        if self.test_mode == "val" and task > self.earlier_tasks:
+            raise ContinualConfigError(
+                f"continual-ngp-stream cannot resume training from a checkpoint after task {self.earlier_tasks + 1}"
+            )
         super().resume_at(task)
 
     def get_training_callbacks(self, attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:

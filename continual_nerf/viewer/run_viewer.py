@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from threading import Condition, Lock, Thread
-from typing import Dict, Optional
+from typing import Any, Dict, Optional
 
 import tyro
 import viser
@@ -27,7 +27,10 @@ from nerfstudio.viewer.viewer_elements import ViewerSlider, ViewerText
 
 from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_dataset import ContinualDataset
+from continual_nerf.core.continual_pipeline import ContinualPipeline
+from continual_nerf.core.sessions import SessionRecord
 from continual_nerf.errors import ContinualNerfError
 from continual_nerf.interrupts import EXIT_CODES
 from continual_nerf.nerfstudio_compat import (
@@ -61,9 +64,14 @@ def checkpoint_text(path: Optional[Path], task: int) -> str:
     return f"end of task {task + 1}, {path.name}"
 
 
-def task_checkpoints(checkpoint_dir: Path, accuracy: AccuracyMatrix) -> Dict[int, Path]:
-    """The checkpoint written at the end of each task (0-based), by the step of its accuracy-matrix row."""
+def task_checkpoints(
+    checkpoint_dir: Path, accuracy: AccuracyMatrix, earlier: Optional[SessionRecord] = None
+) -> Dict[int, Path]:
+    """The checkpoint written at the end of each task (0-based), by the step of its accuracy-matrix row; for the tasks
+    of a continued run's earlier sessions, where their runs wrote it."""
     paths = {task: checkpoint_dir / f"step-{step:09d}.ckpt" for task, step in enumerate(accuracy.steps)}
+    for task, name in enumerate(earlier.task_checkpoints if earlier is not None else []):
+        paths[task] = Path(name)  # "" where its run's checkpoint was not known: no file
     return {task: path for task, path in paths.items() if path.is_file()}
 
 
@@ -88,7 +96,10 @@ class TaskTravel:
         self.lock = lock
         """The viewer renders under this lock; weights are swapped under it too."""
         self.accuracy = accuracy
-        self.checkpoints = task_checkpoints(checkpoint_dir, accuracy)
+        datamanager = pipeline.datamanager
+        self.earlier = datamanager.earlier if isinstance(datamanager, ContinualDataManager) else None
+        """A continued run's earlier sessions: their tasks' checkpoints are their runs'."""
+        self.checkpoints = task_checkpoints(checkpoint_dir, accuracy, self.earlier)
         dataset = pipeline.datamanager.train_dataset
         assert isinstance(dataset, ContinualDataset)
         self.dataset = dataset
@@ -160,7 +171,7 @@ class TaskTravel:
             return
         rerender(self.viewer)  # interrupts a render in progress: it holds the lock the weights are swapped under
         with self.lock:  # renders end under it too: none ends between the swap and what the line says of it
-            self.pipeline.load_pipeline(state["pipeline"], state["step"])
+            self._load(task, state)
             if self.viewer.viser_server.get_clients():  # a browser is open: its view renders with these weights
                 self.rendering = shown
                 self._say(f"{shown}, {RENDERING} at Max res {self.viewer.control_panel.max_res}")
@@ -171,6 +182,15 @@ class TaskTravel:
         self.cameras.show(self.dataset, task)
         show_step(self.viewer, int(state["step"]))
         rerender(self.viewer)
+
+    def _load(self, task: int, state: Dict[str, Any]) -> None:
+        """The weights of the checkpoint of `task`'s end: an earlier session's model has rows for its frames only."""
+        earlier, pipeline = self.earlier, self.pipeline
+        if earlier is None or task >= earlier.num_tasks or not isinstance(pipeline, ContinualPipeline):
+            pipeline.load_pipeline(state["pipeline"], state["step"])
+            return
+        rows = earlier.train_frames_of_sessions(earlier.session_of_task(task) + 1)
+        pipeline.load_earlier_model(state["pipeline"], int(state["step"]), rows)
 
     def _rendered(self, camera: Cameras, completed: bool) -> None:
         """A render ended: once the new checkpoint's view has rendered at Max res, the line stops saying rendering."""
@@ -202,7 +222,9 @@ class ContinualRunViewer:
         if not accuracy_path.is_file():
             raise ContinualNerfError(f"{accuracy_path}: not found; is {self.load_config} a continual run's config?")
         accuracy = AccuracyMatrix.read(accuracy_path)
-        if not task_checkpoints(config.get_checkpoint_dir(), accuracy):
+        datamanager = pipeline.datamanager
+        earlier = datamanager.earlier if isinstance(datamanager, ContinualDataManager) else None
+        if not task_checkpoints(config.get_checkpoint_dir(), accuracy, earlier):
             raise ContinualNerfError(f"{config.get_checkpoint_dir()}: no checkpoint written at the end of a task")
         lock = Lock()
         with viewer_answering_when_ready():  # the page answers once it shows the panel

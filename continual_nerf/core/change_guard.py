@@ -1,0 +1,169 @@
+"""The change guard: replay must not teach the old state of what the open task's frames see changed.
+
+A later session may find the scene changed (an object moved, a wall repainted). Its images must win where they see the
+change, yet replay renders the earlier state from the frozen oracle and teaches it back. When a task opens, the oracle
+renders the open task's frames on a coarse grid of cells (colour and the distance to the surface), and a cell whose
+colour differs from the frame's pixel there by more than a threshold, and well more than the task's cells typically
+do, counts as changed. A replayed ray ends where the
+oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed cell and is not hidden there
+behind the surface the oracle renders in that cell, the frame observes that point differently than the earlier tasks
+did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
+in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
+their replay: what the new images do not show keeps what the earlier session taught.
+
+Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Tuple
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from torch import Tensor
+
+from continual_nerf.core.continual_dataset import ContinualDataset
+
+MAX_CELLS = 1024
+"""Cells per open-task frame at most: a frame's grid strides over its pixels so that it has no more."""
+CONTRAST = 3.0
+"""A changed cell also differs by this many times the open task's median difference: where the oracle renders every
+cell about as badly (a model still learning, ground no earlier task saw), nothing stands out as changed."""
+SAMPLES_ALONG_RAY = 8
+"""Points a replayed ray is checked at, evenly up to where it ends: a ray whose end no open-task frame sees changed may
+still cross space they see changed (an object moved into what was empty)."""
+VISIBILITY_TOLERANCE = 0.1
+"""A point counts as seen in a cell when it is no farther than the cell's surface by this share of its distance."""
+SEED = 0
+"""The seed the oracle's jittered samples are drawn with while it renders the cells (training's generators untouched):
+a run resumed mid-task finds the same cells changed."""
+
+Render = Callable[[RayBundle], Tuple[Tensor, Tensor]]
+"""Colour (N, 3) and distance along the ray to the surface (N,) the oracle renders for rays of training frames."""
+
+
+@dataclass
+class OpenTaskView:
+    """The open task's frames on their grids of cells: their pinhole cameras, what the oracle renders in each cell
+    (the distance to its surface) and which cells show something else than the oracle renders."""
+
+    task: int
+    rotations: Tensor
+    """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
+    centres: Tensor
+    """(F, 3) camera centres."""
+    intrinsics: Tensor
+    """(F, 4) fx, fy, cx, cy of the loaded images."""
+    sizes: Tensor
+    """(F, 2) width and height of the loaded images."""
+    strides: Tensor
+    """(F,) pixels per cell side."""
+    grid_widths: Tensor
+    """(F,) cells per row."""
+    cell_offsets: Tensor
+    """(F,) index of each frame's first cell."""
+    distances: Tensor
+    """(C,) distance from the camera to the surface the oracle renders in each cell."""
+    changed: Tensor
+    """(C,) whether the cell's pixel differs from the oracle's colour by more than the threshold."""
+
+    def crosses_change(self, origins: Tensor, directions: Tensor, distances: Tensor) -> Tensor:
+        """(N,) whether rays (origins and directions (N, 3)) cross, before the surface they end at `distances` (N,)
+        away, a point an open-task frame sees changed (`observed_changed` at SAMPLES_ALONG_RAY points along each)."""
+        fractions = torch.arange(1, SAMPLES_ALONG_RAY + 1, dtype=distances.dtype) / SAMPLES_ALONG_RAY
+        along = distances[:, None] * fractions[None]
+        points = origins[:, None] + directions[:, None] * along[..., None]
+        return self.observed_changed(points.reshape(-1, 3)).view(-1, SAMPLES_ALONG_RAY).any(dim=1)
+
+    def observed_changed(self, points: Tensor) -> Tensor:
+        """(N,) whether an open-task frame sees each of `points` (N, 3) in a changed cell, not hidden behind the
+        surface the oracle renders there."""
+        if len(points) == 0 or len(self.centres) == 0:
+            return torch.zeros(len(points), dtype=torch.bool, device=points.device)
+        relative = points[:, None, :] - self.centres[None]  # (N, F, 3)
+        local = torch.einsum("fji,nfj->nfi", self.rotations, relative)  # R^T (p - c)
+        depth = -local[..., 2]
+        in_front = depth > 1e-6
+        depth = depth.clamp_min(1e-6)
+        fx, fy, cx, cy = self.intrinsics.unbind(-1)
+        u = cx + fx * local[..., 0] / depth
+        v = cy - fy * local[..., 1] / depth
+        width, height = self.sizes.unbind(-1)
+        inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        column = (u.clamp(0, None).floor().long() // self.strides).clamp(max=self.grid_widths - 1)
+        row = v.clamp(0, None).floor().long() // self.strides
+        cell = (self.cell_offsets + row * self.grid_widths + column).clamp(0, len(self.changed) - 1)
+        seen = relative.norm(dim=-1) <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
+        return (inside & seen & self.changed[cell]).any(dim=1)
+
+
+def cell_grid(width: int, height: int) -> Tuple[int, Tensor, Tensor]:
+    """A frame's cells: the stride and the pixel rows and columns of the cells' centres."""
+    stride = max(1, math.ceil(math.sqrt(width * height / MAX_CELLS)))
+    return stride, torch.arange(stride // 2, height, stride), torch.arange(stride // 2, width, stride)
+
+
+@torch.no_grad()
+def open_task_view(
+    task: int,
+    dataset: ContinualDataset,
+    rays_of: Callable[[Tensor], RayBundle],
+    render: Render,
+    threshold: float,
+    chunk: int,
+) -> OpenTaskView:
+    """Render the open task's frames (its pixels loaded in `dataset`) on their cells with the oracle (`render`, of
+    the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there."""
+    frames = dataset.frames_of_task(task).tolist()
+    start, _ = dataset.open_task_pixel_range()
+    assert dataset.task_pixels is not None, "the open task's pixels are loaded"
+    cameras = dataset.cameras
+    indices, strides, grid_widths, offsets = [], [], [], []
+    for frame in frames:
+        width, height = int(cameras.width[frame]), int(cameras.height[frame])
+        stride, rows, columns = cell_grid(width, height)
+        y, x = torch.meshgrid(rows, columns, indexing="ij")
+        offsets.append(sum(len(i) for i in indices))
+        indices.append(torch.stack([torch.full_like(y, frame), y, x], dim=-1).reshape(-1, 3))
+        strides.append(stride)
+        grid_widths.append(len(columns))
+    cells = torch.cat(indices)
+    flat = dataset.pixel_offsets[cells[:, 0]] + cells[:, 1] * cameras.width.view(-1)[cells[:, 0]] + cells[:, 2]
+    pixels = dataset.task_pixels[flat - start]
+    colours, distances = [], []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(SEED)
+        for begin in range(0, len(cells), chunk):
+            rgb, distance = render(rays_of(cells[begin : begin + chunk]))
+            colours.append(rgb.float().cpu())
+            distances.append(distance.float().view(-1).cpu())
+    difference = (torch.cat(colours) - pixels.float()).abs().mean(dim=-1)
+    changed = (difference > threshold) & (difference > CONTRAST * difference.median())
+    if dataset.valid_pixels is not None:  # a masked-out pixel shows nothing the open task learns
+        changed &= dataset.valid_pixels.contains(flat)
+    poses = cameras.camera_to_worlds[frames].float()
+    return OpenTaskView(
+        task=task,
+        rotations=poses[:, :, :3],
+        centres=poses[:, :, 3],
+        intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),
+        sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
+        strides=torch.tensor(strides),
+        grid_widths=torch.tensor(grid_widths),
+        cell_offsets=torch.tensor(offsets),
+        distances=torch.cat(distances),
+        changed=changed,
+    )
+
+
+@dataclass
+class GuardCount:
+    """Replayed rays of the open task so far, and how many of them the guard skipped."""
+
+    replayed: int = 0
+    skipped: int = 0
+
+    def share(self) -> float:
+        return self.skipped / self.replayed if self.replayed else 0.0

@@ -1,0 +1,87 @@
+"""The change guard: a replayed ray is skipped when an open-task frame sees the point it ends at in a cell whose colour
+differs from what the replay oracle renders there, unless that point is hidden behind the oracle's surface."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from helpers import demo_parser, tiny_config
+
+from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view
+from continual_nerf.core.continual_datamanager import ContinualDataManager
+
+
+def one_camera_view() -> OpenTaskView:
+    """A 10x10 pinhole camera at the origin looking down -z, every cell's surface 5 away, its left half changed."""
+    changed = torch.zeros(10, 10, dtype=torch.bool)
+    changed[:, :5] = True
+    return OpenTaskView(
+        task=0,
+        rotations=torch.eye(3)[None],
+        centres=torch.zeros(1, 3),
+        intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]),
+        sizes=torch.tensor([[10.0, 10.0]]),
+        strides=torch.tensor([1]),
+        grid_widths=torch.tensor([10]),
+        cell_offsets=torch.tensor([0]),
+        distances=torch.full((100,), 5.0),
+        changed=changed.reshape(-1),
+    )
+
+
+def test_a_point_seen_in_a_changed_cell_is_observed_changed_and_a_hidden_or_unseen_one_is_not():
+    points = torch.tensor(
+        [
+            [-1.0, 0.0, -4.0],  # in front of the surface, in a changed cell
+            [-1.0, 0.0, -8.0],  # the same cell, behind the surface the oracle renders there
+            [1.0, 0.0, -4.0],  # an unchanged cell
+            [-1.0, 0.0, 4.0],  # behind the camera
+            [-10.0, 0.0, -1.0],  # outside the image
+        ]
+    )
+    assert one_camera_view().observed_changed(points).tolist() == [True, False, False, False, False]
+
+
+def test_a_frames_cells_cover_it_with_at_most_the_maximum_number_of_cells():
+    stride, rows, columns = cell_grid(640, 480)
+    assert len(rows) * len(columns) <= 1024 and stride == 18 and rows[0] == columns[0] == 9
+    assert cell_grid(24, 18)[0] == 1, "a small frame: every pixel a cell"
+
+
+def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path):
+    config = tiny_config(tmp_path, demo_parser(num_frames=8), num_tasks=2).pipeline.datamanager
+    manager = config.setup(device="cpu")
+    assert isinstance(manager, ContinualDataManager)
+    dataset = manager.train_dataset
+    dataset.open(1)
+    start, _ = dataset.open_task_pixel_range()
+    assert dataset.task_pixels is not None
+    pixels = dataset.task_pixels
+
+    def render(indices: torch.Tensor):
+        """The open task's own pixels, but every pixel of the frame's left third repainted."""
+        flat = dataset.pixel_offsets[indices[:, 0]] + indices[:, 1] * 24 + indices[:, 2]
+        rgb = pixels[flat - start].clone()
+        rgb[indices[:, 2] < 8] = torch.tensor([1.0, 0.0, 1.0])
+        return rgb, torch.full((len(indices),), 2.0)
+
+    view = open_task_view(1, dataset, lambda indices: indices, render, threshold=0.1, chunk=100)  # type: ignore[arg-type]
+    frames = dataset.frames_of_task(1)
+    assert view.task == 1 and len(view.centres) == len(frames) and len(view.changed) == len(frames) * 24 * 18
+    columns = torch.arange(24).repeat(18 * len(frames))
+    difference = (pixels.view(len(frames), 18, 24, 3)[..., :8, :] - torch.tensor([1.0, 0.0, 1.0])).abs().mean(-1)
+    expected = np.zeros((len(frames), 18, 24), dtype=bool)
+    expected[..., :8] = (difference > 0.1).numpy()
+    assert bool(view.changed[columns >= 8].logical_not().all()), "the rest renders as the frames show it"
+    assert torch.equal(view.changed, torch.from_numpy(expected.reshape(-1))), "the left third, where the paint differs"
+    assert torch.equal(view.distances, torch.full_like(view.distances, 2.0))
+
+
+def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_not_seen():
+    view = one_camera_view()
+    # from beside the camera, through (-1, 0, -4) (a changed cell, before its surface), to an end no cell sees
+    origin, end = torch.tensor([[-3.0, 0.0, -4.0]]), torch.tensor([[1.0, 0.0, -4.0]])
+    direction = (end - origin) / (end - origin).norm()
+    assert not view.observed_changed(end).item()
+    assert view.crosses_change(origin, direction, (end - origin).norm(dim=-1)).item()
+    assert not view.crosses_change(end, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0])).item()

@@ -1,0 +1,124 @@
+"""The sessions benchmark (bench.sessions): its runs as ns-train would train them, each later session continuing the
+one before on its own part of the capture, and its tables against the targets."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from helpers import DEMO_CACHE
+
+from continual_nerf.bench.sessions import (
+    MEASURES_FILENAME,
+    SessionsBenchmark,
+    changed_rows,
+    markdown,
+    read_measures,
+    split_rows,
+    views_between_frames,
+)
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+
+
+def bench(tmp_path: Path) -> SessionsBenchmark:
+    return SessionsBenchmark(
+        data=tmp_path / "demo",
+        output_dir=tmp_path / "out",
+        iterations_per_task=7,
+        options=("--machine.seed 3 continual-demo --num-frames 20",),
+    )
+
+
+def demo_of(config) -> ContinualDemoDataParserConfig:
+    demo = config.pipeline.datamanager.dataparser
+    assert isinstance(demo, ContinualDemoDataParserConfig)
+    return demo
+
+
+def test_the_split_is_the_first_three_fifths_then_the_rest_each_on_its_own_copy(tmp_path):
+    benchmark = bench(tmp_path)
+    one, split = benchmark.split_runs("street")
+    (whole,) = [benchmark.session_config(one, 0)]
+    first, second = (benchmark.session_config(split, index) for index in range(2))
+    assert whole.pipeline.datamanager.num_tasks == 5 and whole.load_dir is None
+    assert (first.pipeline.datamanager.num_tasks, second.pipeline.datamanager.num_tasks) == (3, 2)
+    assert (demo_of(first).end_instant, demo_of(second).start_instant) == (12, 12), "20 instants: 12, then 8"
+    assert demo_of(first).data != demo_of(second).data, "the first session's copy can be deleted alone"
+    assert demo_of(second).scene == "street" and second.machine.seed == 3
+    assert second.load_dir == first.get_checkpoint_dir() and second.pipeline.continue_with_new_capture
+    assert second.pipeline.datamanager.iterations_per_task == 7
+
+
+def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_sessions(tmp_path):
+    runs = {run.name: run for run in bench(tmp_path).changed_runs("room", "wall-repainted")}
+    assert set(runs) == {"continual-ngp", "continual-ngp, change guard off", "iNGP-Incre", "joint bound, new state",
+                         "joint bound, new state, 2 tasks", "joint bound, both walks"}  # fmt: skip
+    benchmark = bench(tmp_path)
+    first, later = (benchmark.session_config(runs["continual-ngp"], index) for index in range(2))
+    assert (demo_of(first).laps, demo_of(first).change, demo_of(first).end_instant) == (2, "wall-repainted", 20)
+    assert demo_of(later).start_instant == 20, "the second walk, after the change"
+    off = benchmark.session_config(runs["continual-ngp, change guard off"], 1)
+    assert off.pipeline.change_guard == "off" and later.pipeline.change_guard == "later-sessions"
+    assert benchmark.session_config(runs["iNGP-Incre"], 1).method_name == "continual-ngp-incre"
+    new_state = benchmark.session_config(runs["joint bound, new state"], 0)
+    both = benchmark.session_config(runs["joint bound, both walks"], 0)
+    assert new_state.pipeline.datamanager.joint and new_state.pipeline.datamanager.num_tasks == 5
+    assert benchmark.session_config(runs["joint bound, new state, 2 tasks"], 0).pipeline.datamanager.num_tasks == 2
+    assert demo_of(new_state).start_instant == 20 and (demo_of(both).start_instant, demo_of(both).end_instant) == (
+        0,
+        None,
+    )
+
+
+def test_a_run_is_read_back_only_when_trained_with_the_same_arguments(tmp_path):
+    benchmark = bench(tmp_path)
+    run = benchmark.split_runs("room")[0]
+    assert read_measures(run) is None
+    run.folder.mkdir(parents=True)
+    (run.folder / MEASURES_FILENAME).write_text(json.dumps({"arguments": run.arguments, "measures": {"x": 1}}))
+    assert read_measures(run) == {"x": 1}
+    (run.folder / MEASURES_FILENAME).write_text(json.dumps({"arguments": [], "measures": {"x": 1}}))
+    with pytest.raises(SystemExit, match="trained with other arguments"):
+        read_measures(run)
+
+
+def test_the_tables_say_whether_each_target_is_met():
+    split = {
+        "one run, 5 tasks": {"first_tasks_after_them": 25.0, "final_mean_psnr": 24.0, "final_row": [23.5, 24.5],
+                             "train_seconds": 100.0},
+        "two sessions, 3 + 2 tasks": {"first_tasks_after_them": 25.0, "final_mean_psnr": 23.7, "final_row": [23.0, 24.4],
+                                      "train_seconds": 101.0},
+    }  # fmt: skip
+    rows = split_rows(split)
+    assert rows[0][3] == "n/a" and rows[1][3] == "-0.30 MISSED"
+    changed = {
+        "continual-ngp": {"changed": 20.5, "unchanged": 25.0, "unchanged_after_first_session": 25.3},
+        "iNGP-Incre": {"changed": 19.0, "unchanged": 23.0, "unchanged_after_first_session": 25.3},
+        "joint bound, new state": {"changed": 21.0, "unchanged": 26.0},
+    }
+    rows = changed_rows(changed)
+    assert rows[0][2:] == ["-0.50 ok", "25.00", "-0.30 ok"]
+    assert rows[1][2:] == ["-2.00 MISSED", "23.00", "-2.30 MISSED"] and rows[2][2] == rows[2][4] == "n/a"
+    text = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])])
+    assert "within 0.2 dB of one run" in text and "| x |" in text
+
+
+@pytest.mark.parametrize("scene", ["room", "street"])
+def test_the_changed_scene_is_measured_between_the_frames_any_run_trains_on(scene):
+    demo = ContinualDemoDataParserConfig(data=DEMO_CACHE, scene=scene, num_frames=8, width=24, height=18,
+                                         change="object-moved", laps=2, start_instant=8)  # fmt: skip
+    capture = demo.setup().get_dataparser_outputs("train")
+    dense = dataclasses.replace(demo, num_frames=15, laps=1, start_instant=0).setup().get_dataparser_outputs("train")
+    cameras = len(capture.image_filenames) // 8
+    even = torch.cat([torch.arange(2 * i * cameras, (2 * i + 1) * cameras) for i in range(8)])
+    assert torch.allclose(dense.cameras.camera_to_worlds[even], capture.cameras.camera_to_worlds, atol=1e-6), (
+        "the even instants of the path sampled twice as densely are the capture's"
+    )
+    views = views_between_frames(demo)
+    assert len(views.images) == 4 * cameras, "instants 1, 5, 9 and 13 of 15"
+    assert any(bool(changed.any()) for changed in views.changed) and all(
+        changed.float().mean() < 0.5 for changed in views.changed
+    )
