@@ -104,6 +104,8 @@ def test_the_tables_say_whether_each_target_is_met():
     assert rows[1][2:] == ["-2.00 MISSED", "23.00", "-2.30 MISSED"] and rows[2][2] == rows[2][4] == "n/a"
     text = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])])
     assert "within 0.2 dB of one run" in text and "| x |" in text
+    section = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])], level=2)
+    assert section.startswith("## Sessions") and "\n### room\n" in section, "a section of docs/results.md"
 
 
 @pytest.mark.parametrize("scene", ["room", "street"])

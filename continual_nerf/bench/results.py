@@ -3,9 +3,9 @@
     python -m continual_nerf.bench.results [--jobs 2] [--device cpu] [--output-dir outputs/results]
 
 Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
-demo scenes at 5 x 240 and 10 x 120, and the real-capture benchmark's flaws with the features the README recommends
-for them, then rewrites `docs/results.md` whole and the table between the README's `results` markers. Each section
-names the benchmark command that makes it alone.
+demo scenes at 5 x 240 and 10 x 120, the real-capture benchmark's flaws with the features the README recommends for
+them and the sessions benchmark on the room, then rewrites `docs/results.md` whole and the table between the README's
+`results` markers. Each section names the benchmark command that makes it alone.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from continual_nerf.atomic_files import write_text_atomically
-from continual_nerf.bench import quality, real_capture
+from continual_nerf.bench import quality, real_capture, sessions
 from continual_nerf.bench.demo_runs import Device
 from continual_nerf.bench.grid import RunSummary, Setting, source_commit
 
@@ -35,6 +35,8 @@ ROOM_CAPTURES = ("clean", "exposure +-30 %", "poses off 1 deg, 1 %")
 ROOM_FEATURES = ("off", "colour transform per image", "pose refinement from mid-task")
 STREET_CAPTURES = ("clean", "camera responses +-20 %")
 STREET_FEATURES = ("off", "codes per image")
+SESSIONS_SCENES = ("room",)
+"""The sessions benchmark's scenes: its eight runs of a scene take as long as the quality grid's twenty."""
 README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
 """The README's generated table lies between these lines."""
 
@@ -85,6 +87,9 @@ class Results:
             "street": bench("street", STREET_CAPTURES, STREET_FEATURES),
         }
 
+    def sessions(self) -> sessions.SessionsBenchmark:
+        return sessions.SessionsBenchmark(scenes=SESSIONS_SCENES, **self.common("sessions"))  # type: ignore[arg-type]
+
     def common(self, name: str) -> Dict[str, object]:
         return {"jobs": self.jobs, "device": self.device, "data": self.data, "output_dir": self.output_dir / name}
 
@@ -105,6 +110,8 @@ class Results:
         lines = [*self.header(sorted(commits)), *quality_section(quality_bench, quality_results)]
         for name, bench in capture_benches.items():
             lines += capture_section(name, bench, capture_results[name])
+        sessions_bench = self.sessions()
+        lines += sessions_bench_section(sessions_bench, sessions_bench.measure())
         write_text_atomically(self.docs, "\n".join(lines))
         replace_readme_table(self.readme, summary_table(quality_results))
         CONSOLE.print(f"[bold green]Wrote {self.docs} and the results table of {self.readme}")
@@ -158,6 +165,11 @@ def capture_section(
     for runs in results.values():
         lines += [*real_capture.markdown_table(runs), ""]
     return lines
+
+
+def sessions_bench_section(bench: sessions.SessionsBenchmark, results: Dict[str, object]) -> List[str]:
+    command_alone = f"{bench.command()} --output-dir outputs/bench-sessions"
+    return sessions.markdown(command_alone, sessions.results_tables(results), level=2).splitlines()
 
 
 def summary_table(results: quality.Results) -> str:

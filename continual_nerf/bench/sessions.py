@@ -237,13 +237,16 @@ class SessionsBenchmark(DemoBenchmark):
 
     def main(self) -> None:
         results = self.measure()
-        command = "python -m continual_nerf.bench.sessions " + shlex.join(self.command_arguments())
-        tables = [table for scene, experiments in results.items() for table in scene_tables(scene, experiments)]
+        tables = results_tables(results)
         for title, columns, rows in tables:
             print_table(title, columns, rows)
         write_text_atomically(self.output_dir / "results.json", json.dumps(results, indent=1))
-        write_text_atomically(self.output_dir / "results.md", markdown(command, tables))
+        write_text_atomically(self.output_dir / "results.md", markdown(self.command(), tables))
         CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}")
+
+    def command(self) -> str:
+        """The command that makes these tables."""
+        return "python -m continual_nerf.bench.sessions " + shlex.join(self.command_arguments())
 
     def command_arguments(self) -> List[str]:
         """The options this benchmark was given, as its command line."""
@@ -386,6 +389,11 @@ def psnr_of(squared_errors: torch.Tensor) -> float:
 Tables = List[Tuple[str, Sequence[str], List[List[str]]]]
 
 
+def results_tables(results: Dict[str, Any]) -> Tables:
+    """Every scene's tables of `SessionsBenchmark.measure`'s results."""
+    return [table for scene, experiments in results.items() for table in scene_tables(scene, experiments)]
+
+
 def scene_tables(scene: str, experiments: Dict[str, Dict[str, Dict[str, Any]]]) -> Tables:
     tables: Tables = []
     for experiment, runs in experiments.items():
@@ -447,8 +455,9 @@ def print_table(title: str, columns: Sequence[str], rows: List[List[str]]) -> No
     CONSOLE.print(table)
 
 
-def markdown(command: str, tables: Tables) -> str:
-    lines = [f"# Sessions (`{command}`)", ""]
+def markdown(command: str, tables: Tables, level: int = 1) -> str:
+    """The tables under a heading of `level` (#: a page of its own, ##: a section of docs/results.md)."""
+    lines = [f"{'#' * level} Sessions: a trained run learns a later capture", "", f"`{command}`", ""]
     lines += [
         f"Targets: (a) two sessions within {TARGETS['split']} dB of one run; (b) the changed region within "
         f"{TARGETS['changed region']} dB of the joint bound on the new state, the unchanged parts losing at most "
@@ -456,7 +465,7 @@ def markdown(command: str, tables: Tables) -> str:
         "",
     ]
     for title, columns, rows in tables:
-        lines += [f"## {title}", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        lines += [f"{'#' * (level + 1)} {title}", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
         lines += ["| " + " | ".join(row) + " |" for row in rows] + [""]
     return "\n".join(lines)
 
