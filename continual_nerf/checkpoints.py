@@ -109,10 +109,12 @@ def slim_checkpoint(path: Path, dropped_prefix: str) -> None:
 
 
 def check_resumable(state: Dict[str, Any], path: Path, latest: Optional[Path]) -> None:
-    """Refuse to resume from a weights-only checkpoint: its optimizers and random states are gone."""
+    """Refuse to resume or continue from a weights-only checkpoint: its optimizers and random states are gone."""
     if state.get(WEIGHTS_ONLY):
-        newest = f"; resume from the latest, {latest.name}" if latest is not None and latest != path else ""
-        raise CheckpointError(f"{path}: keeps the model's weights of a finished task only, not a run to resume{newest}")
+        newest = f"; load the latest, {latest.name}" if latest is not None and latest != path else ""
+        raise CheckpointError(
+            f"{path}: keeps the model's weights of a finished task only, not a run to resume or continue{newest}"
+        )
 
 
 def check_method(state: Dict[str, Any], path: Path, method_name: Optional[str]) -> None:
