@@ -3,8 +3,8 @@
     python -m continual_nerf.bench.results [--jobs 2] [--device cpu] [--output-dir outputs/results]
 
 Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
-demo scenes at 5 x 240 and 10 x 120, the real-capture benchmark's flaws with the features the README recommends for
-them and the sessions benchmark on the room, then rewrites `docs/results.md` whole and the table between the README's
+demo scenes at 5 x 240 and 10 x 120, its depth recipes at 5 x 120, the real-capture benchmark's flaws with the
+features the README recommends for them and the sessions benchmark on the room, then rewrites `docs/results.md` whole and the table between the README's
 `results` markers. Each section names the benchmark command that makes it alone.
 """
 
@@ -37,6 +37,21 @@ STREET_CAPTURES = ("clean", "camera responses +-20 %")
 STREET_FEATURES = ("off", "codes per image")
 SESSIONS_SCENES = ("room",)
 """The sessions benchmark's scenes: its eight runs of a scene take as long as the quality grid's twenty."""
+BOUNDS_NOTE = (
+    "*every pixel kept*: continual-ngp whose replayed rays all come from a buffer holding every pixel of every closed "
+    "task (what the continual setting forbids keeping): the most any replay can give. *joint*: every image from the "
+    "first step, the same total iterations. *right after own task*: the mean over tasks of each task's PSNR when its "
+    "own training ended."
+)
+DEPTH_SETTINGS = ("5x120",)
+"""The depth grid's setting: half the main grid's iterations per task (what depth promises: the quality sooner)."""
+DEPTH_RECIPES = ("continual-ngp", "continual-ngp-depth", "continual-ngp-depth, sensor flaws")
+"""Colour alone, with the demo's exact depth maps, and with a depth sensor's flaws."""
+DEPTH_NOTE = (
+    "The demo scenes' depth maps: exact, or with a depth sensor's flaws (noise growing with distance, no depth beyond "
+    "a range, holes at edges, dropped pixels). *depth abs rel*: mean absolute relative depth error of the final model "
+    "on the test frames; *largest depth error growth*: the most any task's depth error grew after its task closed."
+)
 README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
 """The README's generated table lies between these lines."""
 
@@ -66,12 +81,13 @@ class Results:
     readme: Path = Path("README.md")
     """The README whose table between the results markers is replaced."""
 
-    def quality(self) -> quality.QualityBenchmark:
-        return quality.QualityBenchmark(
-            settings=QUALITY_SETTINGS,
-            recipes=QUALITY_RECIPES,
-            **self.common("quality"),  # type: ignore[arg-type]
-        )
+    def quality(
+        self,
+        name: str = "quality",
+        settings: Tuple[str, ...] = QUALITY_SETTINGS,
+        recipes: Tuple[str, ...] = QUALITY_RECIPES,
+    ) -> quality.QualityBenchmark:
+        return quality.QualityBenchmark(settings=settings, recipes=recipes, **self.common(name))  # type: ignore[arg-type]
 
     def real_captures(self) -> Dict[str, real_capture.RealCaptureBenchmark]:
         def bench(scene: str, captures: Tuple[str, ...], features: Tuple[str, ...]):
@@ -94,20 +110,17 @@ class Results:
         return {"jobs": self.jobs, "device": self.device, "data": self.data, "output_dir": self.output_dir / name}
 
     def main(self) -> None:
-        quality_bench = self.quality()
-        quality_results = quality_bench.measure()
+        quality_bench, depth_bench = self.quality(), self.quality("depth", DEPTH_SETTINGS, DEPTH_RECIPES)
+        quality_results, depth_results = quality_bench.measure(), depth_bench.measure()
         capture_benches = self.real_captures()
         capture_results = {name: bench.measure() for name, bench in capture_benches.items()}
-        commits = {
-            run.commit
-            for by_setting in quality_results.values()
-            for runs in by_setting.values()
-            for run in runs.values()
-        }
-        commits |= {
-            run.commit for by_scene in capture_results.values() for runs in by_scene.values() for run in runs.values()
-        }
-        lines = [*self.header(sorted(commits)), *quality_section(quality_bench, quality_results)]
+        grids = [*quality_results.values(), *depth_results.values(), *capture_results.values()]
+        commits = {run.commit for grid in grids for runs in grid.values() for run in runs.values()}
+        lines = [
+            *self.header(sorted(commits)),
+            *quality_section(quality_bench, quality_results, "Continual-ngp against its bounds", BOUNDS_NOTE),
+            *quality_section(depth_bench, depth_results, "Depth maps: continual-ngp-depth", DEPTH_NOTE),
+        ]
         for name, bench in capture_benches.items():
             lines += capture_section(name, bench, capture_results[name])
         sessions_bench = self.sessions()
@@ -133,21 +146,10 @@ class Results:
         ]
 
 
-def quality_section(bench: quality.QualityBenchmark, results: quality.Results) -> List[str]:
-    run_alone = command(
-        "quality", [("--settings", bench.settings), ("--recipes", bench.recipes), ("--output-dir", ["outputs/quality"])]
-    )
-    lines = [
-        "## Continual-ngp against its bounds",
-        "",
-        f"`{run_alone}`",
-        "",
-        "*every pixel kept*: continual-ngp whose replayed rays all come from a buffer holding every pixel of every "
-        "closed task (what the continual setting forbids keeping): the most any replay can give. *joint*: every "
-        "image from the first step, the same total iterations. *right after own task*: the mean over tasks of each "
-        "task's PSNR when its own training ended.",
-        "",
-    ]
+def quality_section(bench: quality.QualityBenchmark, results: quality.Results, title: str, note: str) -> List[str]:
+    output_dir = f"outputs/{bench.output_dir.name}"
+    arguments = [("--settings", bench.settings), ("--recipes", bench.recipes), ("--output-dir", [output_dir])]
+    lines = [f"## {title}", "", f"`{command('quality', arguments)}`", "", note, ""]
     for scene, by_setting in results.items():
         for key, runs in by_setting.items():
             lines += [f"### {scene}, {Setting.parse(key)}", "", *quality.markdown_table(runs), ""]
