@@ -169,6 +169,17 @@ def signal_when_saved(process: subprocess.Popen, checkpoint: Path, number: int) 
     os.kill(process.pid, number)
 
 
+def ctrl_c_when_saved(command: List[str], checkpoint: Path, log_path: Path) -> str:
+    """Run `command` (an ns-train run), press Ctrl-C as soon as `checkpoint` is saved; checks it ends with 130 and
+    returns its stderr (also kept at `log_path`)."""
+    with log_path.open("w+") as log:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log, env=SUBPROCESS_ENV)
+        signal_when_saved(process, checkpoint, signal.SIGINT)
+        assert process.wait(timeout=RUN_TIMEOUT) == 130
+        log.seek(0)
+        return log.read()
+
+
 def wait_while_running(process: subprocess.Popen, done: Callable[[], bool], what: str) -> None:
     """Wait until `done()`; the test fails if `process` ends first, or is still running without it after RUN_TIMEOUT
     seconds (a hang)."""

@@ -18,10 +18,10 @@ import pytest
 import yaml
 from helpers import (
     SUBPROCESS_ENV,
+    ctrl_c_when_saved,
     demo_parser,
     ns_train_command,
     run_ns_train,
-    signal_when_saved,
     stream_config,
     tiny_config,
     train,
@@ -241,12 +241,8 @@ def test_ctrl_c_in_ns_train_saves_prints_the_resume_command_exits_130_and_that_c
     demo = ["continual-demo", "--data", str(demo_parser().data), "--num-frames", str(NUM_FRAMES)]
     command = ns_train_command(outputs, "interrupted", options, demo)
     folder = outputs / "unnamed" / "continual-ngp" / "interrupted"
-    with (tmp_path / "interrupted.log").open("w+") as log:
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log, env=SUBPROCESS_ENV)
-        signal_when_saved(process, folder / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt", signal.SIGINT)
-        assert process.wait(timeout=600) == 130
-        log.seek(0)
-        stderr = log.read()
+    checkpoint = folder / "nerfstudio_models" / f"step-{STEPS_PER_SAVE:09d}.ckpt"
+    stderr = ctrl_c_when_saved(command, checkpoint, tmp_path / "interrupted.log")
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
     line = stderr.strip().splitlines()[-1]
     said, resume = line.split(" saved; resume with: ")

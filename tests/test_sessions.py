@@ -8,7 +8,6 @@ import dataclasses
 import json
 import shlex
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +20,7 @@ import yaml
 from helpers import (
     SUBPROCESS_ENV,
     arc_poses,
+    ctrl_c_when_saved,
     demo_parser,
     masked_capture,
     ns_train_command,
@@ -28,7 +28,6 @@ from helpers import (
     original_poses,
     replayed,
     run_ns_train,
-    signal_when_saved,
     stream_config,
     tiny_config,
     train,
@@ -384,12 +383,7 @@ def test_a_continued_run_interrupted_and_resumed_ends_as_the_uninterrupted_conti
     demo = ["continual-demo", "--data", str(tmp_path / "second"), *size, "--start-instant", str(NUM_FRAMES // 2)]
     command = ns_train_command(outputs, "interrupted", options, demo)
     folder = outputs / "unnamed" / "continual-ngp" / "interrupted"
-    with (tmp_path / "interrupted.log").open("w+") as log:
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log, env=SUBPROCESS_ENV)
-        signal_when_saved(process, folder / "nerfstudio_models" / f"step-{20:09d}.ckpt", signal.SIGINT)
-        assert process.wait(timeout=600) == 130
-        log.seek(0)
-        stderr = log.read()
+    stderr = ctrl_c_when_saved(command, folder / "nerfstudio_models" / f"step-{20:09d}.ckpt", tmp_path / "ctrl-c.log")
     resume = stderr.strip().splitlines()[-1].split(" saved; resume with: ")[1]
     assert CONTINUE_OPTION not in resume and f"--load-dir {folder / 'nerfstudio_models'}" in resume
     resumed = run_ns_train([command[0], *shlex.split(resume)[1:]])
