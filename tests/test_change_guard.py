@@ -26,6 +26,7 @@ def one_camera_view() -> OpenTaskView:
         cell_offsets=torch.tensor([0]),
         distances=torch.full((100,), 5.0),
         changed=changed.reshape(-1),
+        changed_pixels=torch.nonzero(changed.reshape(-1)).view(-1),
     )
 
 

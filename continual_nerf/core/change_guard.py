@@ -68,6 +68,8 @@ class OpenTaskView:
     """(C,) distance from the camera to the surface the oracle renders in each cell."""
     changed: Tensor
     """(C,) whether the cell's pixel differs from the oracle's colour by more than the threshold."""
+    changed_pixels: Tensor
+    """Flat pixel numbers of every trainable pixel of the changed cells (the open task's, in the dataset's order)."""
 
     def crosses_change(self, origins: Tensor, directions: Tensor, distances: Tensor) -> Tensor:
         """(N,) whether rays (origins and directions (N, 3)) cross, before the surface they end at `distances` (N,)
@@ -143,6 +145,8 @@ def open_task_view(
     changed = (difference > threshold) & (difference > CONTRAST * difference.median())
     if dataset.valid_pixels is not None:  # a masked-out pixel shows nothing the open task learns
         changed &= dataset.valid_pixels.contains(flat)
+    cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
+    changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
     poses = cameras.camera_to_worlds[frames].float()
     return OpenTaskView(
         task=task,
@@ -155,7 +159,27 @@ def open_task_view(
         cell_offsets=torch.tensor(offsets),
         distances=torch.cat(distances),
         changed=changed,
+        changed_pixels=changed_pixels,
     )
+
+
+def pixels_of_cells(dataset: ContinualDataset, cells: Tensor, strides: Tensor) -> Tensor:
+    """Flat pixel numbers of the trainable pixels in the cells centred at `cells` ((N, 3) frame, y, x) whose
+    sides are `strides` (N,) pixels."""
+    if len(cells) == 0:
+        return torch.zeros(0, dtype=torch.long)
+    frame, y, x = cells.unbind(-1)
+    step = torch.arange(int(strides.max()))
+    rows = ((y // strides) * strides)[:, None, None] + step[None, :, None]
+    columns = ((x // strides) * strides)[:, None, None] + step[None, None, :]
+    width = dataset.cameras.width.view(-1)[frame].long()[:, None, None]
+    height = dataset.cameras.height.view(-1)[frame].long()[:, None, None]
+    inside = (rows - rows[:, :1] < strides[:, None, None]) & (columns - columns[..., :1] < strides[:, None, None])
+    inside &= (rows < height) & (columns < width)
+    flat = (dataset.pixel_offsets[frame][:, None, None] + rows * width + columns)[inside]
+    if dataset.valid_pixels is not None:
+        flat = flat[dataset.valid_pixels.contains(flat)]
+    return flat
 
 
 @dataclass

@@ -258,6 +258,8 @@ class ContinualDataManager(VanillaDataManager):
         """The open task: its pixels and the rays of every task up to it are served."""
         self.replay_buffer: Optional[ExperienceReplayBuffer] = None
         """Stored pixels of closed tasks the pipeline keeps (experience replay); None keeps none."""
+        self.emphasis: Tuple[int, torch.Tensor, float] = (-1, torch.zeros(0, dtype=torch.long), 0.0)
+        """The task, the pixels of it and the share of its rays drawn from them (the change guard's emphasis)."""
         path = config.earlier_sessions
         self.earlier: Optional[SessionRecord] = None if path is None else SessionRecord.load(path)
         """The earlier sessions of a continued run (their tasks come first); None: this capture is the first."""
@@ -439,12 +441,12 @@ class ContinualDataManager(VanillaDataManager):
         start, end = self.train_dataset.open_task_pixel_range()
         draw = self.train_dataset.draw_pixels
         if not (self.config.replay and self.released_task > 0):
-            return draw(start, end, num_rays)
+            return self._draw_open_task(start, end, num_rays)
         share = self.open_task_share()
         if share is None:
             return draw(0, end, num_rays)
         num_open = round(num_rays * share)
-        return torch.cat([draw(start, end, num_open), draw(0, start, num_rays - num_open)])
+        return torch.cat([self._draw_open_task(start, end, num_open), draw(0, start, num_rays - num_open)])
 
     def ray_indices(self, flat: torch.Tensor) -> torch.Tensor:
         """(camera, y, x) of flat pixel numbers."""
@@ -453,6 +455,25 @@ class ContinualDataManager(VanillaDataManager):
         local = flat - offsets[frame]
         width = self.train_dataset.cameras.width.view(-1)[frame].long()
         return torch.stack([frame, local // width, local % width], dim=-1)
+
+    def open_if_released(self) -> None:
+        """Open the released task unless it is open (its pixels read)."""
+        if self.train_dataset.open_task != self.data_task:
+            self.open_released_task()
+
+    def emphasise(self, task: int, pixels: torch.Tensor, share: float) -> None:
+        """Draw `share` of task `task`'s rays from `pixels` (flat pixel numbers of its frames) while it is open."""
+        self.emphasis = (task, pixels, share)
+
+    def _draw_open_task(self, start: int, end: int, num: int) -> torch.Tensor:
+        """`num` flat pixel numbers of the open task, uniformly over its pixels but for the emphasised share."""
+        draw = self.train_dataset.draw_pixels
+        task, pixels, share = self.emphasis
+        if task != self.data_task or len(pixels) == 0:
+            return draw(start, end, num)
+        num_emphasised = round(num * share)
+        chosen = pixels[torch.randint(len(pixels), (num_emphasised,))]
+        return torch.cat([draw(start, end, num - num_emphasised), chosen])
 
     def open_released_task(self) -> None:
         """Open the task training starts or resumes in, once the images still to be read are known to be readable."""
@@ -471,8 +492,7 @@ class ContinualDataManager(VanillaDataManager):
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
         """Rays drawn over the released tasks; `image` holds the open task's pixels where `is_replay` is false, and
         `depth_image` (when the model trains on depth) their depth, 0 (none) on replayed rays."""
-        if self.train_dataset.open_task != self.data_task:
-            self.open_released_task()
+        self.open_if_released()
         self.train_count += 1
         flat = self.sample_pixels(self.config.train_num_rays_per_batch)
         start, _ = self.train_dataset.open_task_pixel_range()

@@ -102,6 +102,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     change_threshold: float = 0.1
     """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
     which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
+    change_emphasis: float = 0.25
+    """Share of the open task's rays the change guard draws from the pixels it found changed, while it runs (the
+    new images' change learned in the task's budget); 0: the open task's rays uniform over its pixels."""
 
     def validate(self) -> None:
         super().validate()
@@ -113,6 +116,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             raise ContinualConfigError(
                 f"--pipeline.test-pose-alignment-steps must be at least 0, got {self.test_pose_alignment_steps}"
             )
+        if not 0 <= self.change_emphasis < 1:
+            raise ContinualConfigError(f"--pipeline.change-emphasis must be in [0, 1), got {self.change_emphasis}")
         if not 0 < self.change_threshold < 1:
             raise ContinualConfigError(f"--pipeline.change-threshold must be in (0, 1), got {self.change_threshold}")
         for name in ("lr_decay_start", "pose_refinement_start"):
@@ -241,6 +246,8 @@ class ContinualPipeline(VanillaPipeline):
         return self._train_loss_dict(step, self.model)
 
     def _train_loss_dict(self, step: int, model: torch.nn.Module):
+        if self.guards_replay and self.config.change_emphasis > 0:
+            self._emphasise_change()
         ray_bundle, batch = self.datamanager.next_train(step)
         self.add_replay_targets(ray_bundle, batch)
         model_outputs = model(ray_bundle)
@@ -276,12 +283,24 @@ class ContinualPipeline(VanillaPipeline):
         rays = (replayed.origins, replayed.directions, distance)
         crossing = view.crosses_change(*(tensor.detach().float().cpu() for tensor in rays))
         skipped = torch.zeros_like(is_replay)
-        skipped[is_replay] = crossing.to(is_replay.device)
+        skipped[is_replay] = crossing.to(is_replay.device) & self._of_earlier_session(batch["indices"][is_replay, 0])
         batch[REPLAY_SKIPPED] = skipped
         if self.distills_replay_depth:
             batch[DEPTH_KEY][skipped] = 0.0  # no depth target where the surface changed
         self.guard_count.replayed += int(is_replay.sum())
         self.guard_count.skipped += int(skipped.sum())
+
+    def _of_earlier_session(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N,) whether each of `frames` belongs to a task of an earlier session than the open task's: the open
+        session's closed tasks saw the scene as it is now, and their replay teaches it (every task's with
+        --pipeline.change-guard every-task)."""
+        if self.config.change_guard == "every-task":
+            return torch.ones_like(frames, dtype=torch.bool)
+        datamanager = self.datamanager
+        session = datamanager.session_of_task(self.task.current)
+        tasks = datamanager.train_dataset.task_of_frame[frames.cpu()]
+        sessions = torch.tensor([datamanager.session_of_task(int(task)) for task in range(int(tasks.max()) + 1)])
+        return (sessions[tasks] < session).to(frames.device)
 
     @property
     def guards_replay(self) -> bool:
@@ -289,6 +308,13 @@ class ContinualPipeline(VanillaPipeline):
         guard = self.config.change_guard
         later_session = self.datamanager.session_of_task(self.task.current) > 0
         return self.replays and (guard == "every-task" or (guard == "later-sessions" and later_session))
+
+    def _emphasise_change(self) -> None:
+        """Have the datamanager draw --pipeline.change-emphasis of the open task's rays from the pixels the guard
+        finds changed (built before the task's first batch, so that a resumed run draws the same rays)."""
+        self.datamanager.open_if_released()
+        view = self._open_task_view()
+        self.datamanager.emphasise(view.task, view.changed_pixels, self.config.change_emphasis)
 
     def _open_task_view(self) -> OpenTaskView:
         """The open task's view for the change guard, rendered by the oracle once the task's pixels are read."""
