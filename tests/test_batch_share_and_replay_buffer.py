@@ -47,6 +47,22 @@ def test_the_batch_holds_the_configured_share_of_open_task_rays(run_dir, share):
         assert set(datamanager.train_dataset.task_of_frame[replayed_frames].tolist()) <= set(range(task))
 
 
+def test_the_emphasised_share_of_the_open_tasks_rays_is_drawn_from_the_emphasised_pixels(run_dir):
+    trainer = set_up(run_dir, current_task_fraction=0.5)
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    pipeline.open_next_task()
+    datamanager.open_if_released()
+    start, end = datamanager.train_dataset.open_task_pixel_range()
+    emphasised = torch.tensor([start + 5, end - 1])
+    datamanager.emphasise(1, emphasised, 0.25)
+    flat = datamanager.sample_pixels(1024)
+    open_part, replayed = flat[:512], flat[512:]
+    assert bool(torch.isin(open_part[-128:], emphasised).all()), "a quarter of the open task's 512 rays"
+    assert bool(((open_part >= start) & (open_part < end)).all()) and bool((replayed < start).all())
+    datamanager.emphasise(0, emphasised, 0.25)
+    assert int(torch.isin(datamanager.sample_pixels(1024), emphasised).sum()) < 8, "a closed task's emphasis: none"
+
+
 def test_uniform_sampling_is_the_papers_rule(run_dir):
     trainer = set_up(run_dir, current_task_fraction="uniform")
     pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager

@@ -3,11 +3,13 @@ differs from what the replay oracle renders there, unless that point is hidden b
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 from helpers import demo_parser, tiny_config
 
-from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view
+from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 
 
@@ -76,6 +78,18 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
     assert bool(view.changed[columns >= 8].logical_not().all()), "the rest renders as the frames show it"
     assert torch.equal(view.changed, torch.from_numpy(expected.reshape(-1))), "the left third, where the paint differs"
     assert torch.equal(view.distances, torch.full_like(view.distances, 2.0))
+    changed_flat = start + torch.nonzero(torch.from_numpy(expected.reshape(-1))).view(-1)
+    assert torch.equal(view.changed_pixels.sort().values, changed_flat), "one pixel per cell: the changed ones"
+
+
+def test_a_changed_cells_pixels_are_its_whole_block_inside_its_frame():
+    frames = SimpleNamespace(width=torch.tensor([[10], [10]]), height=torch.tensor([[7], [7]]))
+    dataset = SimpleNamespace(cameras=frames, pixel_offsets=torch.tensor([0, 70]), valid_pixels=None)
+    cells = torch.tensor([[1, 4, 4], [0, 6, 9]])  # centres of a 3x3 cell of frame 2, and a cell at frame 1's corner
+    pixels = pixels_of_cells(dataset, cells, torch.tensor([3, 3]))  # type: ignore[arg-type]
+    block = [70 + y * 10 + x for y in range(3, 6) for x in range(3, 6)]
+    assert sorted(pixels.tolist()) == sorted([*block, 6 * 10 + 9]), "the corner cell clipped to the frame's pixel"
+    assert len(pixels_of_cells(dataset, cells[:0], torch.tensor([], dtype=torch.long))) == 0  # type: ignore[arg-type]
 
 
 def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_not_seen():

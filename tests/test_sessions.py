@@ -41,6 +41,7 @@ from continual_nerf.checkpoints import read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_pipeline import CONTINUE_OPTION
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.core.ngp_model import ContinualNGPModel
 from continual_nerf.core.sessions import SESSIONS_FILENAME, SessionRecord
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
@@ -169,6 +170,32 @@ def test_a_continued_run_is_continued_again_as_a_third_session(two_sessions, tmp
     matrix = trainer.pipeline.accuracy
     assert matrix.finished and matrix.num_tasks == 6 and matrix.steps[4:] == [14, 17]
     assert trainer.pipeline.datamanager.sessions_record(6, {}).tasks_per_session == [2, 2, 2]
+
+
+class EverythingChanged:
+    """A change guard's view of the open task that sees every replayed ray cross a change."""
+
+    task = 3
+    changed_pixels = torch.zeros(0, dtype=torch.long)
+
+    def crosses_change(self, origins: torch.Tensor, directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+        return torch.ones(len(origins), dtype=torch.bool)
+
+
+@pytest.mark.slow
+def test_the_change_guard_skips_earlier_sessions_replay_only(two_sessions, tmp_path, monkeypatch):
+    first, _, _ = two_sessions
+    trainer = set_up(continued(session(tmp_path / "outputs", tmp_path / "later", "later", first=False), first))
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    datamanager.next_train(0)
+    pipeline.open_next_task()  # task 4: tasks 1-2 are the first session's, task 3 this session's
+    monkeypatch.setattr(pipeline, "_open_task_view", EverythingChanged)
+    ray_bundle, batch = datamanager.next_train(0)
+    pipeline.add_replay_targets(ray_bundle, batch)
+    replayed_tasks = datamanager.train_dataset.task_of_frame[batch["indices"][:, 0]]
+    replay, skipped = batch["is_replay"], batch[REPLAY_SKIPPED]
+    assert set(replayed_tasks[replay].tolist()) == {0, 1, 2}
+    assert torch.equal(skipped, replay & (replayed_tasks < 2)), "the later session's own closed task keeps its replay"
 
 
 @pytest.mark.slow

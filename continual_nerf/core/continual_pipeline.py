@@ -276,9 +276,10 @@ class ContinualPipeline(VanillaPipeline):
         if self.distills_replay_depth:
             depth = depth_target(outputs, replayed, euclidean_depth_maps(self.config.model))
             batch[DEPTH_KEY][is_replay] = depth.to(batch[DEPTH_KEY].dtype)
-        distance = surface_distance(outputs)
-        if not self.guards_replay or distance is None:
+        if not self.guards_replay:
             return
+        distance = surface_distance(outputs)
+        assert distance is not None, "hash-grid models render depth"
         view = self._open_task_view()
         rays = (replayed.origins, replayed.directions, distance)
         crossing = view.crosses_change(*(tensor.detach().float().cpu() for tensor in rays))
@@ -304,10 +305,12 @@ class ContinualPipeline(VanillaPipeline):
 
     @property
     def guards_replay(self) -> bool:
-        """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard)."""
+        """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard): it places their
+        surfaces with the depth the hash-grid models render (the NeRF baseline renders none)."""
         guard = self.config.change_guard
         later_session = self.datamanager.session_of_task(self.task.current) > 0
-        return self.replays and (guard == "every-task" or (guard == "later-sessions" and later_session))
+        chosen = guard == "every-task" or (guard == "later-sessions" and later_session)
+        return chosen and self.replays and isinstance(self.model, ContinualNGPModel)
 
     def _emphasise_change(self) -> None:
         """Have the datamanager draw --pipeline.change-emphasis of the open task's rays from the pixels the guard
