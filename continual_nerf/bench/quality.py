@@ -114,7 +114,8 @@ class QualityBenchmark(Grid):
         write_text_atomically(
             self.output_dir / "results.md", markdown(results, "python -m continual_nerf.bench.quality")
         )
-        CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}")
+        plot_quality(results, self.output_dir / "results.png")
+        CONSOLE.print(f"[bold green]Tables: {self.output_dir / 'results.md'}, plot: {self.output_dir / 'results.png'}")
 
 
 TABLE_COLUMNS = (

@@ -43,10 +43,13 @@ BOUNDS_NOTE = (
     "first step, the same total iterations. *right after own task*: the mean over tasks of each task's PSNR when its "
     "own training ended."
 )
-DEPTH_SETTINGS = ("5x120",)
-"""The depth grid's setting: half the main grid's iterations per task (what depth promises: the quality sooner)."""
-DEPTH_RECIPES = ("continual-ngp", "continual-ngp-depth", "continual-ngp-depth, sensor flaws")
-"""Colour alone, with the demo's exact depth maps, and with a depth sensor's flaws."""
+DEPTH_SETTINGS = ("5x60", "5x120", "5x240")
+"""The depth grid's settings: a quarter, half and all of the main grid's iterations per task (what depth promises:
+the quality sooner)."""
+DEPTH_RECIPES = ("continual-ngp", "continual-ngp-depth", "continual-ngp-depth, sensor flaws", "joint, depth")
+"""Colour alone, with the demo's exact depth maps, with a depth sensor's flaws, and the joint bound with depth."""
+DEPTH_PLOT = "depth.png"
+"""The depth grid's plot of PSNR against iterations per task, beside the results page."""
 DEPTH_NOTE = (
     "The demo scenes' depth maps: exact, or with a depth sensor's flaws (noise growing with distance, no depth beyond "
     "a range, holes at edges, dropped pixels). *depth abs rel*: mean absolute relative depth error of the final model "
@@ -120,7 +123,10 @@ class Results:
             *self.header(sorted(commits)),
             *quality_section(quality_bench, quality_results, "Continual-ngp against its bounds", BOUNDS_NOTE),
             *quality_section(depth_bench, depth_results, "Depth maps: continual-ngp-depth", DEPTH_NOTE),
+            f"![Final mean PSNR against iterations per task, with and without depth]({DEPTH_PLOT})",
+            "",
         ]
+        quality.plot_quality(depth_results, self.docs.parent / DEPTH_PLOT)
         for name, bench in capture_benches.items():
             lines += capture_section(name, bench, capture_results[name])
         sessions_bench = self.sessions()
