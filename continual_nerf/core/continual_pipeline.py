@@ -97,8 +97,9 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     the loaded run's, the loaded model the replay oracle of every earlier task; the earlier capture is never read
     again. Off: --load-dir resumes the loaded run on its own capture."""
     change_guard: Literal["later-sessions", "every-task", "off"] = "later-sessions"
-    """Skip replayed rays of earlier tasks whose surface an open-task frame sees changed (the new images win where
-    they see a change): in the tasks of a continued run's later sessions, in every task, or never (the paper)."""
+    """Skip replayed rays of earlier sessions' tasks whose surface an open-task frame sees changed (the new images
+    win where they see a change): in a continued run's later sessions, in every task (of every earlier task), or never
+    (the paper)."""
     change_threshold: float = 0.1
     """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
     which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
