@@ -158,11 +158,15 @@ def plot_quality(results: Results, path: Path) -> None:
     figure = Figure(figsize=(5.5 * len(scenes), 4.0), layout="constrained")
     for axes, scene in zip(figure.subplots(1, len(scenes), squeeze=False)[0], scenes):
         settings = [Setting.parse(key) for key in results[scene]]
+        ticks = set()
         for recipe in results[scene][settings[0].key]:
             for label, points in series(settings, lambda s: results[scene][s.key][recipe].final_mean_psnr).items():
                 x, psnr = zip(*sorted(points))
                 axes.plot(x, psnr, marker="o", label=f"{recipe}{label}")
+                ticks.update(x)
         axes.set_xscale("log", base=2)
+        axes.set_xticks(sorted(ticks), [f"{tick:g}" for tick in sorted(ticks)])  # the measured settings, not powers of 2
+        axes.minorticks_off()
         axes.set_xlabel("tasks" if len({s.num_tasks for s in settings}) > 1 else "iterations per task")
         axes.set_ylabel("final mean test PSNR (dB)")
         axes.set_title(scene)
