@@ -165,7 +165,8 @@ def plot_quality(results: Results, path: Path) -> None:
                 axes.plot(x, psnr, marker="o", label=f"{recipe}{label}")
                 ticks.update(x)
         axes.set_xscale("log", base=2)
-        axes.set_xticks(sorted(ticks), [f"{tick:g}" for tick in sorted(ticks)])  # the measured settings, not powers of 2
+        # the measured settings as ticks, not powers of 2
+        axes.set_xticks(sorted(ticks), [f"{tick:g}" for tick in sorted(ticks)])
         axes.minorticks_off()
         axes.set_xlabel("tasks" if len({s.num_tasks for s in settings}) > 1 else "iterations per task")
         axes.set_ylabel("final mean test PSNR (dB)")
