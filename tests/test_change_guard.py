@@ -6,11 +6,14 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 from helpers import demo_parser, tiny_config
 
 from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells
 from continual_nerf.core.continual_datamanager import ContinualDataManager
+from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
+from continual_nerf.errors import ContinualConfigError
 
 
 def one_camera_view() -> OpenTaskView:
@@ -100,3 +103,9 @@ def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_n
     assert not view.observed_changed(end).item()
     assert view.crosses_change(origin, direction, (end - origin).norm(dim=-1)).item()
     assert not view.crosses_change(end, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0])).item()
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.0])
+def test_a_change_emphasis_outside_its_range_is_one_line(share):
+    with pytest.raises(ContinualConfigError, match=rf"^--pipeline.change-emphasis must be in \[0, 1\), got {share}$"):
+        ContinualPipelineConfig(change_emphasis=share).validate()

@@ -299,10 +299,7 @@ class ContinualPipeline(VanillaPipeline):
         if self.config.change_guard == "every-task":
             return torch.ones_like(frames, dtype=torch.bool)
         datamanager = self.datamanager
-        session = datamanager.session_of_task(self.task.current)
-        tasks = datamanager.train_dataset.task_of_frame[frames.cpu()]
-        sessions = torch.tensor([datamanager.session_of_task(int(task)) for task in range(int(tasks.max()) + 1)])
-        return (sessions[tasks] < session).to(frames.device)
+        return (datamanager.train_dataset.task_of_frame[frames.cpu()] < datamanager.earlier_tasks).to(frames.device)
 
     @property
     def guards_replay(self) -> bool:
