@@ -26,6 +26,7 @@ from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench import quality, real_capture, sessions
 from continual_nerf.bench.demo_runs import Device
 from continual_nerf.bench.grid import RunSummary, Setting, source_commit
+from continual_nerf.dataparsers.continual_demo_dataparser import DemoScene
 
 QUALITY_SETTINGS = ("5x240", "10x120")
 """The quality grid's settings: five tasks, and ten tasks of half the budget (the same 1200 iterations)."""
@@ -55,6 +56,14 @@ DEPTH_NOTE = (
     "a range, holes at edges, dropped pixels). *depth abs rel*: mean absolute relative depth error of the final model "
     "on the test frames; *largest depth error growth*: the most any task's depth error grew after its task closed."
 )
+SWEEP_SETTINGS = ("2x120", "5x120", "10x120", "20x120", "40x120")
+"""The task-count sweep: the long street in 2 to 40 tasks at a fixed budget per task."""
+SWEEP_NOTE = (
+    "The long street (`continual-demo --scene long-street`: 480 rig instants, nothing revisited) cut into 2 to 40 tasks "
+    "of 120 iterations each. *s per task* and *peak MiB* from the first to the last task: what many tasks cost."
+)
+SWEEP_PLOT = "sweep.png"
+"""The sweep's plot of PSNR against the number of tasks, beside the results page."""
 README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
 """The README's generated table lies between these lines."""
 
@@ -89,8 +98,14 @@ class Results:
         name: str = "quality",
         settings: Tuple[str, ...] = QUALITY_SETTINGS,
         recipes: Tuple[str, ...] = QUALITY_RECIPES,
+        scenes: Tuple[DemoScene, ...] = ("room", "street"),
     ) -> quality.QualityBenchmark:
-        return quality.QualityBenchmark(settings=settings, recipes=recipes, **self.common(name))  # type: ignore[arg-type]
+        return quality.QualityBenchmark(
+            scenes=scenes,
+            settings=settings,
+            recipes=recipes,
+            **self.common(name),  # type: ignore[arg-type]
+        )
 
     def real_captures(self) -> Dict[str, real_capture.RealCaptureBenchmark]:
         def bench(scene: str, captures: Tuple[str, ...], features: Tuple[str, ...]):
@@ -114,10 +129,13 @@ class Results:
 
     def main(self) -> None:
         quality_bench, depth_bench = self.quality(), self.quality("depth", DEPTH_SETTINGS, DEPTH_RECIPES)
+        sweep_bench = self.quality("sweep", SWEEP_SETTINGS, ("continual-ngp",), ("long-street",))
         quality_results, depth_results = quality_bench.measure(), depth_bench.measure()
+        sweep_results = sweep_bench.measure()
         capture_benches = self.real_captures()
         capture_results = {name: bench.measure() for name, bench in capture_benches.items()}
-        grids = [*quality_results.values(), *depth_results.values(), *capture_results.values()]
+        grids = [*quality_results.values(), *depth_results.values(), *sweep_results.values()]
+        grids += capture_results.values()
         commits = {run.commit for grid in grids for runs in grid.values() for run in runs.values()}
         lines = [
             *self.header(sorted(commits)),
@@ -125,8 +143,12 @@ class Results:
             *quality_section(depth_bench, depth_results, "Depth maps: continual-ngp-depth", DEPTH_NOTE),
             f"![Final mean PSNR against iterations per task, with and without depth]({DEPTH_PLOT})",
             "",
+            *quality_section(sweep_bench, sweep_results, "Long captures: 2 to 40 tasks", SWEEP_NOTE),
+            f"![Final mean PSNR against the number of tasks on the long street]({SWEEP_PLOT})",
+            "",
         ]
         quality.plot_quality(depth_results, self.docs.parent / DEPTH_PLOT)
+        quality.plot_quality(sweep_results, self.docs.parent / SWEEP_PLOT)
         for name, bench in capture_benches.items():
             lines += capture_section(name, bench, capture_results[name])
         sessions_bench = self.sessions()
@@ -154,7 +176,8 @@ class Results:
 
 def quality_section(bench: quality.QualityBenchmark, results: quality.Results, title: str, note: str) -> List[str]:
     output_dir = f"outputs/{bench.output_dir.name}"
-    arguments = [("--settings", bench.settings), ("--recipes", bench.recipes), ("--output-dir", [output_dir])]
+    arguments = [("--scenes", bench.scenes), ("--settings", bench.settings), ("--recipes", bench.recipes)]
+    arguments.append(("--output-dir", [output_dir]))
     lines = [f"## {title}", "", f"`{command('quality', arguments)}`", "", note, ""]
     for scene, by_setting in results.items():
         for key, runs in by_setting.items():
