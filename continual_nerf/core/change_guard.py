@@ -174,8 +174,8 @@ def pixels_of_cells(dataset: ContinualDataset, cells: Tensor, strides: Tensor) -
     columns = ((x // strides) * strides)[:, None, None] + step[None, None, :]
     width = dataset.cameras.width.view(-1)[frame].long()[:, None, None]
     height = dataset.cameras.height.view(-1)[frame].long()[:, None, None]
-    inside = (rows - rows[:, :1] < strides[:, None, None]) & (columns - columns[..., :1] < strides[:, None, None])
-    inside &= (rows < height) & (columns < width)
+    within = step[None, :] < strides[:, None]  # (N, S): the offsets inside each cell's side
+    inside = within[:, :, None] & within[:, None, :] & (rows < height) & (columns < width)
     flat = (dataset.pixel_offsets[frame][:, None, None] + rows * width + columns)[inside]
     if dataset.valid_pixels is not None:
         flat = flat[dataset.valid_pixels.contains(flat)]
