@@ -130,6 +130,9 @@ def test_every_recipe_parses_and_the_bound_falls_as_continual_ngp_does(tmp_path:
         CONTINUAL_NGP.pipeline.lr_decay_start,
     )
     assert configs[JOINT].pipeline.datamanager.joint
+    kinect, stereo = (configs[f"continual-ngp-depth, {flaws} flaws"].pipeline.datamanager.dataparser
+                      for flaws in ("sensor", "stereo"))  # fmt: skip
+    assert (kinect.depth_max_range, stereo.depth_max_range) == (4, 40), "each recipe's sensor reaches as far as it does"
 
 
 def matrix_of(rows: list) -> AccuracyMatrix:

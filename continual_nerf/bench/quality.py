@@ -41,6 +41,10 @@ FALLING_RATES = (
 SENSOR_FLAWS = "--depth-noise 0.0015 --depth-max-range 4 --depth-edge-holes 1 --depth-dropout 0.05"
 """continual-demo's depth maps as a Kinect-like sensor records them: noise growing with depth, nothing beyond 4 m, holes
 at edges and at random."""
+STEREO_FLAWS = "--depth-noise 0.0007 --depth-max-range 40 --depth-edge-holes 1 --depth-dropout 0.1"
+"""continual-demo's depth maps as a car's stereo rig measures them (a KITTI-like 0.54 m baseline and 720 px focal length
+at a quarter pixel of disparity error): noise growing with the square of depth, nothing beyond 40 m, holes at edges
+where one camera does not see, a tenth of the pixels unmatched."""
 RECIPES: Dict[str, str] = {
     "continual-ngp": "continual-ngp",
     "continual-ngp, paper recipe": "continual-ngp-paper",
@@ -52,6 +56,7 @@ RECIPES: Dict[str, str] = {
     "iNGP-Incre": "continual-ngp-incre",
     "continual-ngp-depth": "continual-ngp-depth",
     "continual-ngp-depth, sensor flaws": f"continual-ngp-depth continual-demo {SENSOR_FLAWS}",
+    "continual-ngp-depth, stereo flaws": f"continual-ngp-depth continual-demo {STEREO_FLAWS}",
     # the bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter too
     JOINT: f"continual-ngp-joint {FALLING_RATES}",
     "joint, depth": f"continual-ngp-depth --pipeline.datamanager.joint True --pipeline.datamanager.replay False "
