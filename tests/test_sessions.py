@@ -37,9 +37,9 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.bench.browser import free_port
-from continual_nerf.checkpoints import read_checkpoint
+from continual_nerf.checkpoints import find_checkpoint, read_checkpoint
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
-from continual_nerf.core.continual_pipeline import CONTINUE_OPTION
+from continual_nerf.core.continual_pipeline import CONTINUE_OPTION, MODEL_PREFIX
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
 from continual_nerf.core.ngp_model import ContinualNGPModel
@@ -233,6 +233,34 @@ PER_FRAME = (
 )
 
 
+PROPOSAL_NETWORKS = "proposal_networks."
+"""State-dict keys of nerfacto's proposal networks in the model."""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("relearn", [True, False])
+def test_a_later_session_relearns_the_proposal_networks_unless_told_not_to(two_sessions, tmp_path, relearn):
+    first, _, _ = two_sessions
+    saved = read_checkpoint(find_checkpoint(first.get_checkpoint_dir(), None))["pipeline"]
+    config = continued(session(tmp_path / "outputs", tmp_path / "later", "later", first=False), first)
+    config.pipeline.relearn_proposal_networks = relearn
+    trainer = set_up(config)
+    model, oracle = trainer.pipeline.model, trainer.pipeline.replay_oracle.model
+    assert oracle is not None
+
+    def proposal_parameters(module: torch.nn.Module) -> Dict[str, torch.Tensor]:
+        return {key: value for key, value in module.named_parameters() if key.startswith(PROPOSAL_NETWORKS)}
+
+    loaded = {key: saved[MODEL_PREFIX + key] for key in proposal_parameters(model)}
+    assert loaded and all(torch.equal(value, loaded[key]) for key, value in proposal_parameters(oracle).items())
+    same = [torch.equal(value, loaded[key]) for key, value in proposal_parameters(model).items()]
+    assert not any(same) if relearn else all(same)
+    moments = trainer.optimizers.optimizers["proposal_networks"].state
+    has_moments = [parameter in moments for parameter in proposal_parameters(model).values()]
+    assert not any(has_moments) if relearn else all(has_moments)
+    assert trainer.optimizers.optimizers["fields"].state, "the field goes on with its moments"
+
+
 @pytest.mark.slow
 def test_the_earlier_tasks_rays_masks_codes_and_transforms_are_bit_identical_after_loading(tmp_path):
     first = masked_session(tmp_path / "outputs", masked_capture(tmp_path / "first"), "first")
@@ -265,6 +293,8 @@ def test_the_earlier_tasks_rays_masks_codes_and_transforms_are_bit_identical_aft
     model = trainer.pipeline.model
     assert isinstance(model, ContinualNGPModel) and set(PER_FRAME) <= set(model.per_frame_state_keys())
     for key, value in model_before.items():
+        if key.startswith(PROPOSAL_NETWORKS):  # relearned by the later session: test_a_later_session_relearns_...
+            continue
         if key in model.per_frame_state_keys():
             assert model_after[key].shape[0] == len(after.train_dataset) > count
             assert torch.equal(model_after[key][:count], value[:count]), key

@@ -485,11 +485,14 @@ class ContinualTrainer(DeferredPauseTrainer):
                 f"{path}: its last session was trained on {datamanager.capture_name()}: a later session needs a later "
                 "capture (to resume an unfinished run, leave --pipeline.continue-with-new-capture out)"
             )
+        initial_sampler = self._initial_sampler()
         try:
             pipeline.continue_session(state["pipeline"], state["step"])
             for name, optimizer in self.optimizers.optimizers.items():
                 parameters = [p for group in optimizer.param_groups for p in group["params"]]
                 optimizer.load_state_dict(grow_optimizer_state(state["optimizers"][name], parameters))
+            if initial_sampler is not None:
+                self._restart_sampler(initial_sampler)
             if self.config.load_scheduler:
                 self.optimizers.load_schedulers(state.get("schedulers", {}))
             self.grad_scaler.load_state_dict(state["scalers"])
@@ -509,6 +512,23 @@ class ContinualTrainer(DeferredPauseTrainer):
             markup=False,
             soft_wrap=True,
         )
+
+    def _initial_sampler(self) -> Optional[Dict[str, torch.Tensor]]:
+        """The proposal networks' weights as the model was built, before a checkpoint is loaded into it, if a later
+        session relearns them (--pipeline.relearn-proposal-networks; models without them: None)."""
+        networks = getattr(self.pipeline.model, "proposal_networks", None)
+        if not self.config.pipeline.relearn_proposal_networks or networks is None:
+            return None
+        return {key: value.clone() for key, value in networks.state_dict().items()}
+
+    def _restart_sampler(self, initial: Dict[str, torch.Tensor]) -> None:
+        """The proposal networks back at their initial weights, their optimizer moments dropped (the replay oracle,
+        frozen from the loaded model, keeps the loaded ones)."""
+        networks: torch.nn.Module = getattr(self.pipeline.model, "proposal_networks")
+        networks.load_state_dict(initial)
+        for optimizer in self.optimizers.optimizers.values():
+            for parameter in networks.parameters():
+                optimizer.state.pop(parameter, None)
 
     def _check_budget_reaches(self, step: int, path: Path) -> None:
         """Refuse a checkpoint at or past the last step this run has: nerfstudio's loop would not run at all."""
