@@ -368,6 +368,13 @@ CORPUS = [
     ),
     BadInput("test-interval-1", option("--pipeline.datamanager.test-interval must be at least 2", test_interval=1)),
     BadInput(
+        "near-plane-metres-0",
+        lambda context: (
+            with_model_options(earlier_run_config(), near_plane_metres=0.0),
+            "--pipeline.model.near-plane-metres must be positive, got 0.0",
+        ),
+    ),
+    BadInput(
         "rays-per-batch-0",
         option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
     ),

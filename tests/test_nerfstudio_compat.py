@@ -33,6 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 from continual_nerf import nerfstudio_compat as compat
 from continual_nerf.compilation import random_rays
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
+from continual_nerf.core.depth_maps import METRES_PER_SCENE_UNIT
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.recipes import set_up_like_ns_train, small_model
@@ -84,6 +85,15 @@ def test_proposal_sampler_counters_exist_and_round_trip():
     assert compat.proposal_sampler_state(model) == {"proposal_step": 7, "proposal_steps_since_update": 2}
     model.proposal_sampler.step_cb(11)  # nerfstudio's own callback sets the counter the checkpoint keeps
     assert compat.proposal_sampler_state(model)["proposal_step"] == 11
+
+
+@pytest.mark.parametrize("metres_per_unit, near_plane", [(None, 0.05), (10.0, 0.05), (200.0, 0.01)])
+def test_nerfactos_collider_starts_rays_at_the_near_plane_brought_in_to_its_metres(metres_per_unit, near_plane):
+    metadata = {} if metres_per_unit is None else {METRES_PER_SCENE_UNIT: metres_per_unit}
+    config = small_model(ContinualNGPModelConfig(compile=False, near_plane=0.05, near_plane_metres=2.0))
+    model = config.setup(scene_box=SCENE_BOX, num_train_data=1, metadata=metadata)
+    nears = model.collider(random_rays(model, 4)).nears
+    assert nears is not None and torch.allclose(nears, torch.full_like(nears, near_plane))
 
 
 def test_depth_nerfacto_decays_its_sigma_in_an_attribute_no_checkpoint_keeps():

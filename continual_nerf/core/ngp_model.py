@@ -84,6 +84,10 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     detach_sample_positions: bool = True
     """Skip the gradient with respect to the field's sample positions: nerfacto computes it for normals only (and pose
     refinement, which keeps it)."""
+    near_plane_metres: float = 2.0
+    """Farthest the near plane may lie from the camera, in the capture's units (metres for every continual parser but
+    a COLMAP model's): --pipeline.model.near-plane is in scene units, and a capture scaled down to fit its scene box (a
+    long drive) would put nerfacto's 0.05 tens of metres out, past the facades beside the road."""
     replay_sample_fraction: float = 1.0
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
     1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
@@ -93,6 +97,10 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
         if not self.replay_sample_fraction > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
+            )
+        if not self.near_plane_metres > 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.near-plane-metres must be positive, got {self.near_plane_metres}"
             )
         if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
             raise ContinualConfigError(
@@ -133,6 +141,7 @@ class ContinualNGPModel(NerfactoModel):
         # nothing may download at run time, and this model reports PSNR and SSIM only
         with without_lpips():
             super().populate_modules()
+        self.collider.near_plane = self._near_plane()
         if self.config.compile:
             compile_model(self)
         # pose gradients flow through the sample positions
@@ -149,6 +158,14 @@ class ContinualNGPModel(NerfactoModel):
         """Keeps closed tasks' codes, colour transforms and pose corrections as they were; None without any."""
         if self.config.learns_per_frame:
             self.open_task_rows = OpenTaskRows(self._per_frame_parameters(), self.task_of_frame)
+
+    def _near_plane(self) -> float:
+        """nerfacto's near plane in scene units, brought in to --pipeline.model.near-plane-metres where the capture's
+        scale makes it farther (a model built without the dataset's scale keeps nerfacto's)."""
+        metres_per_unit = self.kwargs.get("metadata", {}).get(METRES_PER_SCENE_UNIT)
+        if metres_per_unit is None:
+            return self.config.near_plane
+        return min(self.config.near_plane, self.config.near_plane_metres / float(metres_per_unit))
 
     def _frame_tasks_and_cameras(self) -> Tuple[torch.Tensor, torch.Tensor]:
         """Task and camera of every training frame, from the training dataset's metadata (one task and one camera
