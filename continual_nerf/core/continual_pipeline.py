@@ -96,11 +96,12 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     """With --load-dir (or --load-checkpoint): go on learning the capture given now as a new session, its tasks after
     the loaded run's, the loaded model the replay oracle of every earlier task; the earlier capture is never read
     again. Off: --load-dir resumes the loaded run on its own capture."""
-    relearn_proposal_networks: bool = True
+    relearn_proposal_networks: bool = False
     """At a later session's start, nerfacto's proposal networks (which place the field's samples along each ray) start
     again from their initial weights and learn the scene anew from the field, with fresh optimizer moments: the loaded
-    ones give no samples to space the earlier session saw empty, where a moved object could not be learned. The replay
-    oracle keeps the loaded ones. Off: they go on from the loaded run's."""
+    ones give few samples to space the earlier session saw empty, where an object moved in is then learned slowly. The
+    replay oracle keeps the loaded ones. Off: they go on from the loaded run's (a later session of an unchanged scene
+    loses less)."""
     change_guard: Literal["later-sessions", "every-task", "off"] = "later-sessions"
     """Skip replayed rays of earlier sessions' tasks whose surface an open-task frame sees changed (the new images
     win where they see a change): in a continued run's later sessions, in every task (of every earlier task), or never
