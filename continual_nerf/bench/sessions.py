@@ -9,10 +9,11 @@ scenes.
     frames at the end (the first session's images rendered again for it).
 (b) changed: a first session of 3 tasks over the whole path, then a second of 2 tasks that walks the path again after
     a change (continual-demo --laps 2 --change): on views between the path's frames (no run trains on them), PSNR of
-    the changed region against the new state and of the rest against the scene as it was (identical there), for continual-ngp (with its change
-    guard and without, and with its proposal networks relearned), iNGP-Incre, and the joint bound trained on the new state alone and on both walks, each with the
-    budget of the 5 tasks (and on the new state with the later session's 2 tasks); a two-session run's unchanged parts
-    also against the end of its first session.
+    the changed region against the new state and of the rest against the scene as it was (identical there), for
+    continual-ngp (with its change guard and without, and with its proposal networks relearned), iNGP-Incre, and the
+    joint bound trained on the new state alone and on both walks, each with the budget of the 5 tasks (and on the new
+    state with the later session's 2 tasks); a two-session run's unchanged parts also against the end of its first
+    session.
 
 Every run trains in a process of its own, its sessions one after the other; finished runs are read back, not trained
 again, so an interrupted benchmark resumes. `results.md` and `results.json` in the output folder hold the tables.
