@@ -375,6 +375,13 @@ CORPUS = [
         ),
     ),
     BadInput(
+        "finest-cell-metres-0",
+        lambda context: (
+            with_model_options(earlier_run_config(), finest_cell_metres=0.0),
+            "--pipeline.model.finest-cell-metres must be positive or None, got 0.0",
+        ),
+    ),
+    BadInput(
         "rays-per-batch-0",
         option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
     ),

@@ -96,6 +96,30 @@ def test_nerfactos_collider_starts_rays_at_the_near_plane_brought_in_to_its_metr
     assert nears is not None and torch.allclose(nears, torch.full_like(nears, near_plane))
 
 
+@pytest.mark.parametrize(
+    "metres_per_unit, contracted, max_res",
+    [(None, True, 128), (10.0, True, 128), (40.0, True, 320), (200.0, True, 1600), (200.0, False, 800)],
+)
+def test_the_fields_finest_resolution_is_raised_where_the_captures_scale_makes_its_cells_coarse(
+    metres_per_unit, contracted, max_res
+):
+    metadata = {} if metres_per_unit is None else {METRES_PER_SCENE_UNIT: metres_per_unit}
+    config = small_model(  # max-res 128: cells of 0.5 m up to 16 m per scene unit (the contracted space spans 4 units)
+        ContinualNGPModelConfig(compile=False, finest_cell_metres=0.5, disable_scene_contraction=not contracted)
+    )
+    model = config.setup(scene_box=SCENE_BOX, num_train_data=1, metadata=metadata)
+    assert model.field.mlp_base.max_res == max_res
+    assert config.max_res == 128, "the run's config keeps the option as given"
+    oracle = model.config.setup(scene_box=SCENE_BOX, num_train_data=1, metadata=metadata)
+    assert oracle.field.mlp_base.max_res == max_res, "a copy built from the model's config has the same grid"
+
+
+def test_finest_cell_metres_none_keeps_max_res():
+    config = small_model(ContinualNGPModelConfig(compile=False, finest_cell_metres=None))
+    model = config.setup(scene_box=SCENE_BOX, num_train_data=1, metadata={METRES_PER_SCENE_UNIT: 200.0})
+    assert model.field.mlp_base.max_res == 128
+
+
 def test_depth_nerfacto_decays_its_sigma_in_an_attribute_no_checkpoint_keeps():
     config = ContinualNGPDepthModelConfig(
         compile=False, should_decay_sigma=True, starting_depth_sigma=0.2, sigma_decay_rate=0.5, depth_sigma=0.01

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type
 
@@ -88,6 +89,11 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     """Farthest the near plane may lie from the camera, in the capture's units (metres for every continual parser but
     a COLMAP model's): --pipeline.model.near-plane is in scene units, and a capture scaled down to fit its scene box (a
     long drive) would put nerfacto's 0.05 tens of metres out, past the facades beside the road."""
+    finest_cell_metres: Optional[float] = 0.5
+    """Largest edge of the finest hash-grid cell, in the capture's units (metres for every continual parser but a
+    COLMAP model's): where a capture scaled down to fit its scene box (a long drive) would give --pipeline.model.max-res
+    coarser cells, the finest resolution is raised to it, as instant-ngp's grows with its aabb_scale (same table,
+    memory and step time); None keeps max-res."""
     replay_sample_fraction: float = 1.0
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
     1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
@@ -101,6 +107,10 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
         if not self.near_plane_metres > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.near-plane-metres must be positive, got {self.near_plane_metres}"
+            )
+        if self.finest_cell_metres is not None and not self.finest_cell_metres > 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.finest-cell-metres must be positive or None, got {self.finest_cell_metres}"
             )
         if self.eval_num_rays_per_chunk < 1:  # nerfstudio would train a whole task, then fail at its evaluation
             raise ContinualConfigError(
@@ -138,6 +148,8 @@ class ContinualNGPModel(NerfactoModel):
     config: ContinualNGPModelConfig
 
     def populate_modules(self) -> None:
+        # a copy: the run's config keeps the options as the user gave them
+        self.config = dataclasses.replace(self.config, max_res=self._finest_resolution())
         # nothing may download at run time, and this model reports PSNR and SSIM only
         with without_lpips():
             super().populate_modules()
@@ -166,6 +178,18 @@ class ContinualNGPModel(NerfactoModel):
         if metres_per_unit is None:
             return self.config.near_plane
         return min(self.config.near_plane, self.config.near_plane_metres / float(metres_per_unit))
+
+    def _finest_resolution(self) -> int:
+        """max-res, raised where the capture's scale makes its cells larger than --pipeline.model.finest-cell-metres
+        (a model built without the dataset's scale keeps max-res)."""
+        metres_per_unit = self.kwargs.get("metadata", {}).get(METRES_PER_SCENE_UNIT)
+        if metres_per_unit is None or self.config.finest_cell_metres is None:
+            return self.config.max_res
+        # nerfacto's grid spans the contracted space, [-2, 2] scene units, or the scene box without contraction
+        extent = float((self.scene_box.aabb[1] - self.scene_box.aabb[0]).max())
+        grid_units = extent if self.config.disable_scene_contraction else 4.0
+        cells = math.ceil(grid_units * float(metres_per_unit) / self.config.finest_cell_metres)
+        return max(self.config.max_res, cells)
 
     def _frame_tasks_and_cameras(self) -> Tuple[torch.Tensor, torch.Tensor]:
         """Task and camera of every training frame, from the training dataset's metadata (one task and one camera
