@@ -174,22 +174,27 @@ class ContinualNGPModel(NerfactoModel):
     def _near_plane(self) -> float:
         """nerfacto's near plane in scene units, brought in to --pipeline.model.near-plane-metres where the capture's
         scale makes it farther (a model built without the dataset's scale keeps nerfacto's)."""
-        metres_per_unit = self.kwargs.get("metadata", {}).get(METRES_PER_SCENE_UNIT)
+        metres_per_unit = self._metres_per_unit()
         if metres_per_unit is None:
             return self.config.near_plane
-        return min(self.config.near_plane, self.config.near_plane_metres / float(metres_per_unit))
+        return min(self.config.near_plane, self.config.near_plane_metres / metres_per_unit)
 
     def _finest_resolution(self) -> int:
         """max-res, raised where the capture's scale makes its cells larger than --pipeline.model.finest-cell-metres
         (a model built without the dataset's scale keeps max-res)."""
-        metres_per_unit = self.kwargs.get("metadata", {}).get(METRES_PER_SCENE_UNIT)
+        metres_per_unit = self._metres_per_unit()
         if metres_per_unit is None or self.config.finest_cell_metres is None:
             return self.config.max_res
         # nerfacto's grid spans the contracted space, [-2, 2] scene units, or the scene box without contraction
         extent = float((self.scene_box.aabb[1] - self.scene_box.aabb[0]).max())
         grid_units = extent if self.config.disable_scene_contraction else 4.0
-        cells = math.ceil(grid_units * float(metres_per_unit) / self.config.finest_cell_metres)
+        cells = math.ceil(grid_units * metres_per_unit / self.config.finest_cell_metres)
         return max(self.config.max_res, cells)
+
+    def _metres_per_unit(self) -> Optional[float]:
+        """The capture's units per scene unit, None for a model built without the dataset's scale."""
+        metres_per_unit = (self.kwargs.get("metadata") or {}).get(METRES_PER_SCENE_UNIT)
+        return None if metres_per_unit is None else float(metres_per_unit)
 
     def _frame_tasks_and_cameras(self) -> Tuple[torch.Tensor, torch.Tensor]:
         """Task and camera of every training frame, from the training dataset's metadata (one task and one camera
