@@ -21,7 +21,7 @@ import zipfile
 import zlib
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Any, BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import pyarrow as pa
@@ -36,7 +36,6 @@ from nerfstudio.data.utils import colmap_parsing_utils as colmap
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from PIL import Image
 
-from continual_nerf.core.change_guard import OpenTaskView
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.dataparsers import waymo_v2
@@ -959,24 +958,3 @@ def fill_the_disk_at_checkpoint(monkeypatch, save_number: int = 1) -> None:
         real_save(obj, file if len(calls) < save_number else FullDisk(file, room=1000), *args, **kwargs)
 
     monkeypatch.setattr(torch, "save", save)
-
-
-def one_camera_view(task: int = 0, changed_columns: Iterable[int] = range(5)) -> OpenTaskView:
-    """The change guard's view of one 10x10 pinhole camera of `task` at the origin looking down -z, every cell's
-    surface 5 away, the cells of `changed_columns` changed (by default its left half)."""
-    changed = torch.zeros(10, 10, dtype=torch.bool)
-    changed[:, list(changed_columns)] = True
-    return OpenTaskView(
-        task=task,
-        frame_tasks=torch.tensor([task]),
-        rotations=torch.eye(3)[None],
-        centres=torch.zeros(1, 3),
-        intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]),
-        sizes=torch.tensor([[10.0, 10.0]]),
-        strides=torch.tensor([1]),
-        grid_widths=torch.tensor([10]),
-        cell_offsets=torch.tensor([0]),
-        distances=torch.full((100,), 5.0),
-        changed=changed.reshape(-1),
-        changed_pixels=torch.nonzero(changed.reshape(-1)).view(-1),
-    )

@@ -8,12 +8,31 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from helpers import demo_parser, one_camera_view, tiny_config
+from helpers import demo_parser, tiny_config
 
-from continual_nerf.core.change_guard import cell_grid, joined, open_task_view, pixels_of_cells
+from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.errors import ContinualConfigError
+
+
+def one_camera_view() -> OpenTaskView:
+    """A 10x10 pinhole camera at the origin looking down -z, every cell's surface 5 away, its left half changed."""
+    changed = torch.zeros(10, 10, dtype=torch.bool)
+    changed[:, :5] = True
+    return OpenTaskView(
+        task=0,
+        rotations=torch.eye(3)[None],
+        centres=torch.zeros(1, 3),
+        intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]),
+        sizes=torch.tensor([[10.0, 10.0]]),
+        strides=torch.tensor([1]),
+        grid_widths=torch.tensor([10]),
+        cell_offsets=torch.tensor([0]),
+        distances=torch.full((100,), 5.0),
+        changed=changed.reshape(-1),
+        changed_pixels=torch.nonzero(changed.reshape(-1)).view(-1),
+    )
 
 
 def test_a_point_seen_in_a_changed_cell_is_observed_changed_and_a_hidden_or_unseen_one_is_not():
@@ -84,18 +103,6 @@ def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_n
     assert not view.observed_changed(end).item()
     assert view.crosses_change(origin, direction, (end - origin).norm(dim=-1)).item()
     assert not view.crosses_change(end, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0])).item()
-
-
-def test_a_closed_tasks_frames_that_saw_a_change_go_on_guarding_the_rays_of_tasks_before_theirs():
-    left, right = torch.tensor([[-1.0, 0.0, -4.0]]), torch.tensor([[1.0, 0.0, -4.0]])
-    unchanged = one_camera_view(task=3, changed_columns=range(0))
-    closed = joined([one_camera_view(task=3, changed_columns=range(5)), unchanged]).frames_with_change()
-    assert closed.frame_tasks.tolist() == [3] and len(closed.changed) == 100, "a frame without a change is dropped"
-    view = joined([closed, one_camera_view(task=4, changed_columns=range(5, 10))])
-    assert view.task == 4 and torch.equal(view.cell_offsets, torch.tensor([0, 100]))
-    points, first_tasks = torch.cat([left, left, right, right]), torch.tensor([3, 4, 4, 5])
-    assert view.observed_changed(points, first_tasks).tolist() == [True, False, True, False]
-    assert view.observed_changed(torch.cat([left, right])).tolist() == [True, True], "None: every frame counts"
 
 
 @pytest.mark.parametrize("share", [-0.1, 1.0])

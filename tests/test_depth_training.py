@@ -146,9 +146,7 @@ def test_replayed_rays_take_the_oracles_depth_when_it_is_distilled(run_dir):
 class HalfChanged:
     """A change guard's view of the open task that sees every other ray cross a change."""
 
-    def crosses_change(
-        self, origins: torch.Tensor, directions: torch.Tensor, distances: torch.Tensor, first_tasks: torch.Tensor
-    ) -> torch.Tensor:
+    def crosses_change(self, origins: torch.Tensor, directions: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         return torch.arange(len(origins)) % 2 == 0
 
 

@@ -11,18 +11,14 @@ did, and the ray is skipped; so is a ray that crosses, on its way there, a point
 in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
 their replay: what the new images do not show keeps what the earlier session taught.
 
-A closed task's frames keep guarding where they saw a change (their cells, not their pixels, are kept): once a later
-task opens, the oracle renders what the closed task learned there, and an earlier session's ray through it, seen from
-angles the closed task's frames did not cover, would otherwise teach the old state back.
-
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import Callable, Tuple
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -50,13 +46,10 @@ Render = Callable[[RayBundle], Tuple[Tensor, Tensor]]
 
 @dataclass
 class OpenTaskView:
-    """The open task's frames on their grids of cells (with those of closed tasks that saw a change): their pinhole
-    cameras, what the oracle renders in each cell (the distance to its surface) and which cells show something else
-    than the oracle renders."""
+    """The open task's frames on their grids of cells: their pinhole cameras, what the oracle renders in each cell
+    (the distance to its surface) and which cells show something else than the oracle renders."""
 
     task: int
-    frame_tasks: Tensor
-    """(F,) the task each frame belongs to."""
     rotations: Tensor
     """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
     centres: Tensor
@@ -76,23 +69,19 @@ class OpenTaskView:
     changed: Tensor
     """(C,) whether the cell's pixel differs from the oracle's colour by more than the threshold."""
     changed_pixels: Tensor
-    """Flat pixel numbers of every trainable pixel of the open task's changed cells (in the dataset's order)."""
+    """Flat pixel numbers of every trainable pixel of the changed cells (the open task's, in the dataset's order)."""
 
-    def crosses_change(
-        self, origins: Tensor, directions: Tensor, distances: Tensor, first_tasks: Optional[Tensor] = None
-    ) -> Tensor:
+    def crosses_change(self, origins: Tensor, directions: Tensor, distances: Tensor) -> Tensor:
         """(N,) whether rays (origins and directions (N, 3)) cross, before the surface they end at `distances` (N,)
-        away, a point a frame sees changed (`observed_changed` at SAMPLES_ALONG_RAY points along each), counting for
-        each ray only the frames of tasks from its `first_tasks` (N,) on (None: every frame)."""
+        away, a point an open-task frame sees changed (`observed_changed` at SAMPLES_ALONG_RAY points along each)."""
         fractions = torch.arange(1, SAMPLES_ALONG_RAY + 1, dtype=distances.dtype) / SAMPLES_ALONG_RAY
         along = distances[:, None] * fractions[None]
         points = origins[:, None] + directions[:, None] * along[..., None]
-        per_point = None if first_tasks is None else first_tasks.repeat_interleave(SAMPLES_ALONG_RAY)
-        return self.observed_changed(points.reshape(-1, 3), per_point).view(-1, SAMPLES_ALONG_RAY).any(dim=1)
+        return self.observed_changed(points.reshape(-1, 3)).view(-1, SAMPLES_ALONG_RAY).any(dim=1)
 
-    def observed_changed(self, points: Tensor, first_tasks: Optional[Tensor] = None) -> Tensor:
-        """(N,) whether a frame (of a task from `first_tasks` (N,) on; None: any) sees each of `points` (N, 3) in a
-        changed cell, not hidden behind the surface the oracle renders there."""
+    def observed_changed(self, points: Tensor) -> Tensor:
+        """(N,) whether an open-task frame sees each of `points` (N, 3) in a changed cell, not hidden behind the
+        surface the oracle renders there."""
         if len(points) == 0 or len(self.centres) == 0:
             return torch.zeros(len(points), dtype=torch.bool, device=points.device)
         relative = points[:, None, :] - self.centres[None]  # (N, F, 3)
@@ -109,58 +98,7 @@ class OpenTaskView:
         row = v.clamp(0, None).floor().long() // self.strides
         cell = (self.cell_offsets + row * self.grid_widths + column).clamp(0, len(self.changed) - 1)
         seen = relative.norm(dim=-1) <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
-        counted = inside & seen & self.changed[cell]
-        if first_tasks is not None:
-            counted &= self.frame_tasks[None] >= first_tasks[:, None]
-        return counted.any(dim=1)
-
-    def cells_per_frame(self) -> Tensor:
-        """(F,) how many cells each frame has."""
-        return torch.diff(self.cell_offsets, append=torch.tensor([len(self.changed)]))
-
-    def frames_with_change(self) -> "OpenTaskView":
-        """The frames that have a changed cell (the others guard nothing), without the open task's changed pixels."""
-        counts = self.cells_per_frame()
-        frame_of_cell = torch.repeat_interleave(torch.arange(len(counts)), counts)
-        keep = torch.zeros(len(counts), dtype=torch.bool).index_fill_(0, frame_of_cell[self.changed], True)
-        cells = keep[frame_of_cell]
-        return OpenTaskView(
-            task=self.task,
-            frame_tasks=self.frame_tasks[keep],
-            rotations=self.rotations[keep],
-            centres=self.centres[keep],
-            intrinsics=self.intrinsics[keep],
-            sizes=self.sizes[keep],
-            strides=self.strides[keep],
-            grid_widths=self.grid_widths[keep],
-            cell_offsets=torch.cumsum(counts[keep], 0) - counts[keep],
-            distances=self.distances[cells],
-            changed=self.changed[cells],
-            changed_pixels=torch.zeros(0, dtype=torch.long),
-        )
-
-    def state(self) -> Dict[str, Any]:
-        """What a checkpoint keeps of the view."""
-        return asdict(self)
-
-
-def joined(views: Sequence[OpenTaskView]) -> OpenTaskView:
-    """One view of every frame of `views` (the last one's task and changed pixels: the open task's)."""
-    offsets = torch.cumsum(torch.tensor([0] + [len(view.changed) for view in views[:-1]]), 0)
-    return OpenTaskView(
-        task=views[-1].task,
-        frame_tasks=torch.cat([view.frame_tasks for view in views]),
-        rotations=torch.cat([view.rotations for view in views]),
-        centres=torch.cat([view.centres for view in views]),
-        intrinsics=torch.cat([view.intrinsics for view in views]),
-        sizes=torch.cat([view.sizes for view in views]),
-        strides=torch.cat([view.strides for view in views]),
-        grid_widths=torch.cat([view.grid_widths for view in views]),
-        cell_offsets=torch.cat([view.cell_offsets + offset for view, offset in zip(views, offsets)]),
-        distances=torch.cat([view.distances for view in views]),
-        changed=torch.cat([view.changed for view in views]),
-        changed_pixels=views[-1].changed_pixels,
-    )
+        return (inside & seen & self.changed[cell]).any(dim=1)
 
 
 def cell_grid(width: int, height: int) -> Tuple[int, Tensor, Tensor]:
@@ -212,7 +150,6 @@ def open_task_view(
     poses = cameras.camera_to_worlds[frames].float()
     return OpenTaskView(
         task=task,
-        frame_tasks=torch.full((len(frames),), task, dtype=torch.long),
         rotations=poses[:, :, :3],
         centres=poses[:, :, 3],
         intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),

@@ -22,7 +22,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from continual_nerf.core import distributed
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix, DepthRow
-from continual_nerf.core.change_guard import GuardCount, OpenTaskView, joined, open_task_view
+from continual_nerf.core.change_guard import GuardCount, OpenTaskView, open_task_view
 from continual_nerf.core.color_transform_fit import fit_open_task_color_transforms
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.depth_maps import DEPTH_KEY
@@ -65,10 +65,6 @@ BASE_LR_KEY = "continual_base_lr"
 """Key of a parameter group's configured learning rate, which --pipeline.lr-decay-per-task scales."""
 POSE_GROUP = "camera_opt"
 """nerfacto's parameter group of the pose corrections."""
-CHANGE_MEMORY_KEY = "change_memory"
-"""Key of the change guard's memory in a checkpoint's extra state."""
-NO_TASK = 2**62
-"""A task number after every task: rays of the open session's tasks are guarded by no frame."""
 
 
 @dataclass
@@ -211,10 +207,6 @@ class ContinualPipeline(VanillaPipeline):
         self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
         self.open_task_view: Optional[OpenTaskView] = None
         """What the open task's frames show where the oracle renders otherwise (the change guard); None: not built."""
-        self.change_memory: Optional[OpenTaskView] = None
-        """The closed tasks' frames that saw a change, which go on guarding their replay (None: none so far)."""
-        self._guard_view: Optional[Tuple[OpenTaskView, OpenTaskView]] = None
-        """The open task's view and that view joined with the change memory (built once per task)."""
         self.guard_count = GuardCount()
         self._said_unavailable = False
         # the first task has no earlier one to start from; a continued run's first task starts once its model is loaded
@@ -295,39 +287,34 @@ class ContinualPipeline(VanillaPipeline):
             return
         distance = surface_distance(outputs)
         assert distance is not None, "hash-grid models render depth"
-        origins, directions, distance = (
-            t.detach().float().cpu() for t in (replayed.origins, replayed.directions, distance)
-        )
-        tasks = self.datamanager.train_dataset.task_of_frame[batch["indices"][is_replay, 0].cpu()]
-        crossing = self.guard_view().crosses_change(origins, directions, distance, self._first_guarding_tasks(tasks))
+        view = self._open_task_view()
+        rays = (replayed.origins, replayed.directions, distance)
+        crossing = view.crosses_change(*(tensor.detach().float().cpu() for tensor in rays))
         skipped = torch.zeros_like(is_replay)
-        skipped[is_replay] = crossing.to(is_replay.device)
+        skipped[is_replay] = crossing.to(is_replay.device) & self._of_earlier_session(batch["indices"][is_replay, 0])
         batch[REPLAY_SKIPPED] = skipped
         if self.distills_replay_depth:
             batch[DEPTH_KEY][skipped] = 0.0  # no depth target where the surface changed
         self.guard_count.replayed += int(is_replay.sum())
         self.guard_count.skipped += int(skipped.sum())
 
-    def _first_guarding_tasks(self, tasks: torch.Tensor) -> torch.Tensor:
-        """(N,) for replayed rays of `tasks`, the first task whose frames' changes skip them: the next session's first
-        (a session's own tasks saw the scene as it is then, and their replay teaches it), or with
-        --pipeline.change-guard every-task the next task's."""
+    def _of_earlier_session(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N,) whether each of `frames` belongs to a task of an earlier session than the open task's: the open
+        session's closed tasks saw the scene as it is now, and their replay teaches it (every task's with
+        --pipeline.change-guard every-task)."""
         if self.config.change_guard == "every-task":
-            return tasks + 1
-        earlier = self.datamanager.earlier
-        per_session = earlier.tasks_per_session if earlier is not None else []
-        starts = torch.tensor([0, *torch.tensor(per_session, dtype=torch.long).cumsum(0).tolist(), NO_TASK])
-        return starts[torch.bucketize(tasks, starts, right=True).clamp(max=len(starts) - 1)]
+            return torch.ones_like(frames, dtype=torch.bool)
+        datamanager = self.datamanager
+        return (datamanager.train_dataset.task_of_frame[frames.cpu()] < datamanager.earlier_tasks).to(frames.device)
 
     @property
     def guards_replay(self) -> bool:
         """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard): it places their
-        surfaces with the depth the hash-grid models render (the NeRF baseline renders none), once there is an oracle
-        (the first task has nothing to replay)."""
+        surfaces with the depth the hash-grid models render (the NeRF baseline renders none)."""
         guard = self.config.change_guard
         later_session = self.datamanager.session_of_task(self.task.current) > 0
         chosen = guard == "every-task" or (guard == "later-sessions" and later_session)
-        return chosen and self.replays and self.replay_oracle.ready and isinstance(self.model, ContinualNGPModel)
+        return chosen and self.replays and isinstance(self.model, ContinualNGPModel)
 
     def _emphasise_change(self) -> None:
         """Have the datamanager draw --pipeline.change-emphasis of the open task's rays from the pixels the guard
@@ -335,20 +322,6 @@ class ContinualPipeline(VanillaPipeline):
         self.datamanager.open_if_released()
         view = self._open_task_view()
         self.datamanager.emphasise(view.task, view.changed_pixels, self.config.change_emphasis)
-
-    def guard_view(self) -> OpenTaskView:
-        """The frames the change guard checks replayed rays against: the change memory's and the open task's."""
-        view = self._open_task_view()
-        if self._guard_view is None or self._guard_view[0] is not view:
-            self._guard_view = (view, view if self.change_memory is None else joined([self.change_memory, view]))
-        return self._guard_view[1]
-
-    def _remember_changes(self) -> None:
-        """Keep the closing task's frames that saw a change in the change memory (their cells, not their pixels)."""
-        changed = self._open_task_view().frames_with_change()
-        if len(changed.centres):
-            self.change_memory = changed if self.change_memory is None else joined([self.change_memory, changed])
-            self._guard_view = None
 
     def _open_task_view(self) -> OpenTaskView:
         """The open task's view for the change guard, rendered by the oracle once the task's pixels are read."""
@@ -449,8 +422,6 @@ class ContinualPipeline(VanillaPipeline):
         self.before_task_switch()
         if self.replay_buffer.enabled:
             self._keep_pixels_of_closing_task()
-        if self.guards_replay:
-            self._remember_changes()
         if self.guards_replay and distributed.is_main():
             share = 100 * self.guard_count.share()
             CONSOLE.print(
@@ -624,7 +595,6 @@ class ContinualPipeline(VanillaPipeline):
             "schedule": self.datamanager.schedule(),
             "accuracy": asdict(self.accuracy),
             SESSIONS_KEY: self.sessions_record().state(),
-            CHANGE_MEMORY_KEY: None if self.change_memory is None else self.change_memory.state(),
         }
 
     def sessions_record(self) -> SessionRecord:
@@ -645,7 +615,6 @@ class ContinualPipeline(VanillaPipeline):
         self.accuracy.num_tasks = self.known_tasks
         self.accuracy.finished, self.accuracy.status = False, "training"
         self.budget.load_state(extra["budget"])
-        self.change_memory = change_memory_of(extra)
         self._measure_stopped_task(step)
         self.freeze_oracle()
         self.task.current = self.datamanager.released_task = self.datamanager.earlier_tasks
@@ -684,14 +653,7 @@ class ContinualPipeline(VanillaPipeline):
         self.task.load_state(state["task"])
         self.budget.load_state(state["budget"])
         self.accuracy = AccuracyMatrix(**state["accuracy"])
-        self.change_memory = change_memory_of(state)
         self.datamanager.resume_at(self.task.current)
-
-
-def change_memory_of(extra_state: Dict[str, Any]) -> Optional[OpenTaskView]:
-    """The change memory a checkpoint's extra state keeps (None: none, or a checkpoint from before it was kept)."""
-    saved = extra_state.get(CHANGE_MEMORY_KEY)
-    return None if saved is None else OpenTaskView(**saved)
 
 
 def oracle_from_model(state_dict: Mapping[str, Any]) -> Dict[str, Any]:
