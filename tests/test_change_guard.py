@@ -14,6 +14,7 @@ from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.errors import ContinualConfigError
+from continual_nerf.recipes import set_up_like_ns_train
 
 
 def one_camera_view() -> OpenTaskView:
@@ -103,6 +104,16 @@ def test_a_ray_crossing_what_a_frame_sees_changed_is_skipped_though_its_end_is_n
     assert not view.observed_changed(end).item()
     assert view.crosses_change(origin, direction, (end - origin).norm(dim=-1)).item()
     assert not view.crosses_change(end, torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([1.0])).item()
+
+
+def test_the_every_task_guard_waits_for_the_first_oracle(tmp_path):
+    config = tiny_config(tmp_path, demo_parser(num_frames=8), num_tasks=2)
+    config.pipeline.change_guard = "every-task"
+    pipeline = set_up_like_ns_train(config).pipeline
+    assert not pipeline.guards_replay, "the first task has nothing to replay and no oracle to render its frames"
+    pipeline.get_train_loss_dict(0)  # a quarter of its rays would be drawn from changes the oracle found
+    pipeline.open_next_task()
+    assert pipeline.guards_replay
 
 
 @pytest.mark.parametrize("share", [-0.1, 1.0])

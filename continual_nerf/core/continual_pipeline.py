@@ -310,11 +310,12 @@ class ContinualPipeline(VanillaPipeline):
     @property
     def guards_replay(self) -> bool:
         """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard): it places their
-        surfaces with the depth the hash-grid models render (the NeRF baseline renders none)."""
+        surfaces with the depth the hash-grid models render (the NeRF baseline renders none), once there is an oracle
+        (the first task has nothing to replay)."""
         guard = self.config.change_guard
         later_session = self.datamanager.session_of_task(self.task.current) > 0
         chosen = guard == "every-task" or (guard == "later-sessions" and later_session)
-        return chosen and self.replays and isinstance(self.model, ContinualNGPModel)
+        return chosen and self.replays and self.replay_oracle.ready and isinstance(self.model, ContinualNGPModel)
 
     def _emphasise_change(self) -> None:
         """Have the datamanager draw --pipeline.change-emphasis of the open task's rays from the pixels the guard
