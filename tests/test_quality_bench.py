@@ -16,6 +16,7 @@ from PIL import Image
 
 from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
 from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_quality, series, total
+from continual_nerf.bench.results import with_tasks
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
@@ -268,3 +269,8 @@ def test_the_plot_runs_against_the_budget_per_task_where_the_tasks_are_the_same_
     assert set(lines) == {" (60 per task)", " (120 per task)"} and len(lines[" (60 per task)"]) == 3
     fixed_total = [Setting.parse(key) for key in ("2x600", "5x240", "10x120")]
     assert set(series(fixed_total, lambda s: 0.0)) == {" (1200 iterations in all)"}
+
+
+def test_the_depth_plot_keeps_the_settings_of_its_number_of_tasks():
+    results = {scene: {key: {} for key in ("5x60", "5x120", "10x120")} for scene in ("room", "street")}
+    assert with_tasks(results, 5) == {"room": {"5x60": {}, "5x120": {}}, "street": {"5x60": {}, "5x120": {}}}  # type: ignore[arg-type]

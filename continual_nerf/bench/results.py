@@ -3,7 +3,7 @@
     python -m continual_nerf.bench.results [--jobs 2] [--device cpu] [--output-dir outputs/results]
 
 Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
-demo scenes at 5 x 240 and 10 x 120, its depth recipes at 5 x 60, 5 x 120 and 5 x 240, the long street's task-count
+demo scenes at 5 x 240 and 10 x 120, its depth recipes at 5 x 60, 5 x 120, 5 x 240 and 10 x 120, the long street's task-count
 sweep, the real-capture benchmark's flaws with the features the README recommends for them and the sessions benchmark
 on both scenes, then rewrites `docs/results.md` whole and the table between the README's `results` markers. Each
 section names the benchmark command that makes it alone.
@@ -45,9 +45,12 @@ BOUNDS_NOTE = (
     "first step, the same total iterations. *right after own task*: the mean over tasks of each task's PSNR when its "
     "own training ended."
 )
-DEPTH_SETTINGS = ("5x60", "5x120", "5x240")
+DEPTH_SETTINGS = ("5x60", "5x120", "5x240", "10x120")
 """The depth grid's settings: a quarter, half and all of the main grid's iterations per task (what depth promises:
-the quality sooner)."""
+the quality sooner), and ten tasks of half the budget (whether depth keeps geometry from drifting as tasks add up)."""
+DEPTH_PLOT_TASKS = 5
+"""The depth plot's settings: those of this many tasks, against their iterations per task (the paper's "instant"
+axis)."""
 DEPTH_RECIPES = (
     "continual-ngp",
     "continual-ngp-depth",
@@ -159,7 +162,7 @@ class Results:
             f"![Final mean PSNR against the number of tasks on the long street]({SWEEP_PLOT})",
             "",
         ]
-        quality.plot_quality(depth_results, self.docs.parent / DEPTH_PLOT)
+        quality.plot_quality(with_tasks(depth_results, DEPTH_PLOT_TASKS), self.docs.parent / DEPTH_PLOT)
         quality.plot_quality(sweep_results, self.docs.parent / SWEEP_PLOT)
         for name, bench in capture_benches.items():
             lines += capture_section(name, bench, capture_results[name])
@@ -184,6 +187,14 @@ class Results:
             f"{threads}. Training seconds depend on the machine and on what else ran beside; PSNR does not.",
             "",
         ]
+
+
+def with_tasks(results: quality.Results, num_tasks: int) -> quality.Results:
+    """The results of the settings with `num_tasks` tasks."""
+    return {
+        scene: {key: runs for key, runs in by_setting.items() if Setting.parse(key).num_tasks == num_tasks}
+        for scene, by_setting in results.items()
+    }
 
 
 def quality_section(bench: quality.QualityBenchmark, results: quality.Results, title: str, note: str) -> List[str]:
