@@ -3,10 +3,10 @@
     python -m continual_nerf.bench.results [--jobs 2] [--device cpu] [--output-dir outputs/results]
 
 Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
-demo scenes at 5 x 240 and 10 x 120, its depth recipes at 5 x 60, 5 x 120, 5 x 240 and 10 x 120, the long street's task-count
-sweep, the real-capture benchmark's flaws with the features the README recommends for them and the sessions benchmark
-on both scenes, then rewrites `docs/results.md` whole and the table between the README's `results` markers. Each
-section names the benchmark command that makes it alone.
+demo scenes at 5 x 240 and 10 x 120, its depth recipes at 5 x 60, 5 x 120, 5 x 240 and 10 x 120, the long street's
+task-count sweep, the real-capture benchmark's flaws with the features the README recommends for them and the
+sessions benchmark on both scenes, then rewrites `docs/results.md` whole and the table between the README's `results`
+markers. Each section names the benchmark command that makes it alone.
 """
 
 from __future__ import annotations
