@@ -154,7 +154,9 @@ class DevTools:
         self.process.wait(timeout=30)
 
 
-def wait_for(what: str, condition: Callable[[], Any], timeout: float = 90.0) -> None:
+def wait_for(what: str, condition: Callable[[], Any], timeout: float = 240.0) -> None:
+    """Poll `condition` until it holds; a hang detector, not a speed check: the timeout is generous because a busy
+    shared 2-core machine renders several times slower than a quiet one."""
     deadline = time.monotonic() + timeout
     while not condition():
         assert time.monotonic() < deadline, f"timed out after {timeout:g} s waiting for {what}"
