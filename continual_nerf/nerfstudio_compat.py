@@ -490,10 +490,24 @@ _rendering_viewers: "weakref.WeakSet[Viewer]" = weakref.WeakSet()
 
 def stop_rendering_at_exit(viewer: Viewer) -> None:
     """End `viewer`'s render threads before the process exits, whatever ends it: a render thread still running torch
-    code while the interpreter shuts down aborts the process ("terminate called without an active exception")."""
+    code while the interpreter shuts down aborts the process ("terminate called without an active exception"). A
+    browser still sending as the process exits is not answered, and not reported (see quiet_viewer_connections)."""
     if not _rendering_viewers:
         atexit.register(_stop_every_viewer_rendering)
+        threading._register_atexit(quiet_viewer_connections)  # type: ignore[attr-defined]
     _rendering_viewers.add(viewer)
+
+
+def quiet_viewer_connections() -> None:
+    """Log nothing more of the viewers' websocket connections. As the interpreter exits it shuts down every thread
+    pool, viser's too; a browser message arriving after that fails its connection handler, which websockets reports
+    with a traceback ("cannot schedule new futures after shutdown"), after the process's last line.
+
+    Depends on: viser 0.2.7's `infra.WebsockServer` handing each incoming message to its ThreadPoolExecutor from the
+    connection handler; websockets' legacy server logging a failed handler to the `websockets.server` logger; Python
+    (3.9 on) stopping thread pools from a `threading._register_atexit` callback, which runs callbacks registered later
+    first: this one, registered once a viewer exists, before the pools stop."""
+    logging.getLogger("websockets.server").disabled = True
 
 
 def _stop_every_viewer_rendering() -> None:

@@ -4,6 +4,7 @@ when a nerfstudio release changes what the plugin depends on."""
 from __future__ import annotations
 
 import inspect
+import logging
 import random
 import socket
 import sys
@@ -405,6 +406,39 @@ def test_a_camera_message_makes_a_viser_client_with_that_camera():
         assert np.allclose(forward, (look_at - position) / np.linalg.norm(look_at - position), atol=1e-6)
     finally:
         page.close()
+        server.stop()
+
+
+def test_a_browser_sending_while_the_process_exits_is_not_reported_once_connections_are_quiet(caplog):
+    import viser
+    import websocket
+
+    port = _free_port()
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    server._websock_server._thread_executor.shutdown(wait=False)  # what the interpreter does to it as it exits
+    camera = compat.viewer_camera_message(np.ones(3), np.zeros(3), np.array([0.0, 0.0, 1.0]), fov=1.0, aspect=1.5)
+
+    def failures_after_a_message() -> int:
+        page = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=10, suppress_origin=True)
+        try:
+            page.send_binary(camera)
+            deadline = time.monotonic() + 120  # a hang, not a slow machine
+            while page.connected and time.monotonic() < deadline:
+                try:
+                    page.recv()  # until the server closes the failed connection
+                except (websocket.WebSocketException, OSError):
+                    break
+        finally:
+            page.close()
+        return sum("connection handler failed" in record.getMessage() for record in caplog.records)
+
+    try:
+        with caplog.at_level(logging.ERROR, logger="websockets.server"):
+            assert failures_after_a_message() == 1, "the failure this guards against: viser's pool is shut down"
+            compat.quiet_viewer_connections()
+            assert failures_after_a_message() == 1, "nothing more reported"
+    finally:
+        logging.getLogger("websockets.server").disabled = False
         server.stop()
 
 
