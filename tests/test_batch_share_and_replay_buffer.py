@@ -136,6 +136,22 @@ def test_batches_with_the_buffer_take_stored_pixels_and_still_read_no_closed_tas
         datamanager.train_dataset.get_numpy_image(0)
 
 
+def test_a_buffer_of_renders_keeps_what_the_model_renders_as_the_task_closes_not_the_captured_pixels(run_dir):
+    trainer = set_up(run_dir, replay_buffer_fraction=0.1, replay_buffer_keeps="renders")
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    datamanager.next_train(0)  # task 1 opens at its first batch
+    captured = dict(zip(*(part.tolist() for part in datamanager.open_task_pixels())))
+    pipeline.open_next_task()
+    buffer = pipeline.replay_buffer
+    assert set(buffer.tasks_held()) == {0} and len(buffer) == buffer.capacity(datamanager.total_train_pixels())
+    rays = datamanager.train_ray_generator(datamanager.ray_indices(buffer.flat))
+    rendered = pipeline.replay_oracle.render(rays)  # the oracle is the model as task 1 closed
+    stored = buffer.rgb.float() / 255
+    pixels = torch.tensor([captured[flat] for flat in buffer.flat.tolist()])
+    assert (stored - rendered).abs().mean() < 0.01, "the renders, up to 8 bits and the samples' jitter"
+    assert (stored - pixels).abs().mean() > 0.05, "not the captured colours"
+
+
 @pytest.mark.parametrize(
     "options, message",
     [
@@ -151,6 +167,7 @@ def test_batches_with_the_buffer_take_stored_pixels_and_still_read_no_closed_tas
         ),
         ({"replay_buffer_pixels": 100, "replay": False}, "needs replay; this run has --pipeline.datamanager.replay"),
         ({"replay_buffer_share": 1.5}, "replay-buffer-share must be in [0, 1]"),
+        ({"replay_buffer_keeps": "renders"}, "replay-buffer-keeps renders needs a replay buffer: give"),
     ],
 )
 def test_bad_share_and_buffer_options_are_one_line_errors(run_dir, options, message):

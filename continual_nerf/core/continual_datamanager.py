@@ -84,6 +84,9 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
     --pipeline.datamanager.replay-buffer-fraction; 0 keeps none."""
     replay_buffer_share: float = 0.5
     """Share of the replayed rays drawn from the replay buffer while it holds pixels; the oracle renders the rest."""
+    replay_buffer_keeps: Literal["pixels", "renders"] = "pixels"
+    """What the replay buffer keeps for its chosen pixels: their captured colours, or the colours the model renders for
+    them as their task closes (no captured pixel kept; targets that do not drift as later oracles replace it)."""
     # nerfstudio's options for image-based sampling: batches here are drawn from the released tasks' pixels
     masks_on_gpu: tyro.conf.Suppress[bool] = False
     """Not used: batches are drawn from the released tasks' pixels."""
@@ -168,6 +171,11 @@ class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
             raise ContinualConfigError(
                 f"the replay buffer ({option}replay-buffer-fraction or -pixels) needs replay; this run has "
                 f"{option}replay False"
+            )
+        if self.replay_buffer_keeps == "renders" and fraction == 0 and pixels == 0:
+            raise ContinualConfigError(
+                f"{option}replay-buffer-keeps renders needs a replay buffer: give {option}replay-buffer-fraction or "
+                f"{option}replay-buffer-pixels above 0"
             )
 
     def __setstate__(self, state: Dict[str, Any]) -> None:

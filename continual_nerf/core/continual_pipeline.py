@@ -196,7 +196,9 @@ class ContinualPipeline(VanillaPipeline):
         self.task = TaskState()
         self.budget = TaskBudget(iterations=options.iterations_per_task, seconds=options.seconds_per_task)
         self.replay_oracle = ReplayOracle(options.train_num_rays_per_batch)
-        self.replay_buffer = ExperienceReplayBuffer(options.replay_buffer_fraction, options.replay_buffer_pixels)
+        self.replay_buffer = ExperienceReplayBuffer(
+            options.replay_buffer_fraction, options.replay_buffer_pixels, options.replay_buffer_keeps == "renders"
+        )
         if self.replay_buffer.enabled:
             self.datamanager.replay_buffer = self.replay_buffer
             if distributed.is_main():
@@ -467,14 +469,26 @@ class ContinualPipeline(VanillaPipeline):
 
     def _keep_pixels_of_closing_task(self) -> None:
         flat, rgb = self.datamanager.open_task_pixels()
-        depth = self.datamanager.open_task_depths(flat)  # a model that trains on depth keeps it with the pixels
-        self.replay_buffer.add_task(self.task.current, flat, rgb, self.datamanager.total_train_pixels(), depth)
+        total = self.datamanager.total_train_pixels()
+        if self.replay_buffer.keeps_renders:
+            self.freeze_oracle()  # renders as the oracle will: training-mode samples, each frame's code and pose
+            self.replay_buffer.add_task(self.task.current, flat, rgb, total, render=self._render_for_buffer)
+        else:  # a model that trains on depth keeps it with the pixels
+            self.replay_buffer.add_task(self.task.current, flat, rgb, total, self.datamanager.open_task_depths(flat))
         if not distributed.is_main():
             return  # every rank keeps its own random share; rank 0's is checkpointed
         CONSOLE.print(
             f"Replay buffer: {len(self.replay_buffer)} pixels of {self.task.current + 1} tasks, "
             f"{self.replay_buffer.nbytes / 2**20:.2f} MiB"
         )
+
+    def _render_for_buffer(self, flat: torch.Tensor) -> torch.Tensor:
+        """The oracle's colours (N, 3) for flat pixel numbers, a training batch's worth of rays at a time."""
+        colours = [torch.empty(0, 3, device=self.device)]
+        for chunk in torch.split(flat, self.config.datamanager.train_num_rays_per_batch):
+            ray_bundle = self.datamanager.train_ray_generator(self.datamanager.ray_indices(chunk))
+            colours.append(self.replay_oracle.render(ray_bundle))
+        return torch.cat(colours)
 
     @property
     def pose_alignment(self) -> PoseAlignment:

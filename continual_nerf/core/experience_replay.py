@@ -5,12 +5,14 @@ The paper keeps no image. With `--pipeline.datamanager.replay-buffer-fraction` (
 training pixels into the buffer (CLNeRF's experience replay; neural SLAM keeps keyframe pixels
 the same way); every closed task keeps an equal share of the buffer's capacity. Rays drawn from the buffer are
 supervised by their stored colours (and depth, when the model trains on depth), the rest of the replay by the
-oracle. The pipeline owns the buffer, so it is in every checkpoint.
+oracle. With `--pipeline.datamanager.replay-buffer-keeps renders` the stored colours are the model's renders of those
+pixels as their task closes, not the captured ones: the targets of a closed task stay what it reached, while the
+oracle's drift a little at every task switch. The pipeline owns the buffer, so it is in every checkpoint.
 """
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -20,12 +22,14 @@ class ExperienceReplayBuffer(nn.Module):
     """Flat pixel numbers (the training frames' numbering, from which the datamanager regenerates rays) and 8-bit
     colours of closed tasks, at most `capacity(total)` of them, an equal share per task."""
 
-    def __init__(self, fraction: float = 0.0, pixels: int = 0) -> None:
+    def __init__(self, fraction: float = 0.0, pixels: int = 0, keeps_renders: bool = False) -> None:
         super().__init__()
         self.fraction = fraction
         """Pixels to keep, as a share of the capture's training pixels (0 to 1)."""
         self.pixels = pixels
         """Pixels to keep, as a count (instead of `fraction`)."""
+        self.keeps_renders = keeps_renders
+        """Whether the pipeline stores the model's renders of the kept pixels instead of their captured colours."""
         self.flat = torch.empty(0, dtype=torch.long)
         self.rgb = torch.empty(0, 3, dtype=torch.uint8)
         self.task = torch.empty(0, dtype=torch.long)
@@ -50,6 +54,10 @@ class ExperienceReplayBuffer(nn.Module):
 
     def describe(self, total_pixels: Optional[int]) -> str:
         """What the buffer keeps, in one line; `total_pixels`: the capture's training pixels (None: still arriving)."""
+        kept = self._describe_share(total_pixels)
+        return f"{kept}, as the model renders them when their task closes" if self.keeps_renders else kept
+
+    def _describe_share(self, total_pixels: Optional[int]) -> str:
         if total_pixels is None:
             kept = f"{self.pixels:,} pixels" if self.pixels else f"{self.fraction:.2%} of the training pixels"
             return f"Replay buffer: keeps {kept} of the closed tasks, an equal share each"
@@ -62,17 +70,26 @@ class ExperienceReplayBuffer(nn.Module):
         )
 
     @torch.no_grad()
-    def add_task(self, task: int, flat: Tensor, rgb: Tensor, total_pixels: int, depth: Optional[Tensor] = None) -> None:
+    def add_task(
+        self,
+        task: int,
+        flat: Tensor,
+        rgb: Tensor,
+        total_pixels: int,
+        depth: Optional[Tensor] = None,
+        render: Optional[Callable[[Tensor], Tensor]] = None,
+    ) -> None:
         """Keep a uniform random subset of closed task `task`'s pixels (`flat`, colours in [0, 1], `depth` when the
         model trains on it) and shrink the earlier tasks' shares, so that each of the tasks closed so far keeps
-        capacity / (task + 1) pixels."""
+        capacity / (task + 1) pixels. With `render` (flat numbers to colours) the kept colours are its, not `rgb`'s."""
         shares = _equal_shares(self.capacity(total_pixels), task + 1)
         # entries are stored in random order, so the first n of a task are a uniform random subset of its pixels
         kept = [torch.nonzero(self.task == j).view(-1)[: shares[j]] for j in range(task)]
         keep = torch.cat(kept) if kept else torch.empty(0, dtype=torch.long)
         chosen = torch.randperm(len(flat))[: shares[task]]
+        colours = rgb[chosen] if render is None else render(flat[chosen])
         self.flat = torch.cat([self.flat[keep], flat[chosen].cpu()])
-        self.rgb = torch.cat([self.rgb[keep], (rgb[chosen].cpu().clamp(0, 1) * 255).round().to(torch.uint8)])
+        self.rgb = torch.cat([self.rgb[keep], (colours.cpu().clamp(0, 1) * 255).round().to(torch.uint8)])
         self.task = torch.cat([self.task[keep], torch.full((len(chosen),), task, dtype=torch.long)])
         if depth is not None:
             kept_depth = torch.zeros(len(keep)) if self.depth is None else self.depth[keep]
