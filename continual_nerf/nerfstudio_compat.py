@@ -26,6 +26,7 @@ from unittest import mock
 import msgspec
 import numpy as np
 import torch
+import torch.distributed as dist
 import torchmetrics.image.lpip
 import viser.transforms as vtf
 import websockets.server
@@ -428,7 +429,9 @@ def process_worker(
     """nerfstudio's `_distributed_worker` (process group, local group, `main_func`), which on CPU skips its CUDA
     checks; an error is handed to the launching process as one line naming its rank (ProcessFailed), and a process
     that failed only because another one ended (its connection to it closed) exits quietly: the launcher names that
-    one.
+    one. A process that exits by its own decision (Ctrl-C, answered by every rank at one step) destroys its process
+    group first, as nerfstudio's worker does after training: one left alive may abort the interpreter's exit (gloo's
+    threads still hold its work), and the launcher would report a SIGABRT instead of the interrupt.
 
     Depends on: `_distributed_worker` taking these arguments and asserting `torch.cuda.is_available()` and
     `num_devices_per_machine <= torch.cuda.device_count()` before it calls `main_func`, whatever the device type.
@@ -454,6 +457,8 @@ def process_worker(
     except SystemExit as exit_:
         if isinstance(exit_.code, str):  # a one-line error of the plugin's (bad input, a file it cannot write)
             raise ProcessFailed(exit_.code) from None
+        if dist.is_initialized():
+            dist.destroy_process_group()
         raise
     except Exception as error:
         if lost_a_peer(error):

@@ -340,6 +340,23 @@ def test_process_worker_runs_nerfstudios_worker_on_cpu_without_its_cuda_checks(m
     assert seen == [((0, 1, None, 0), torch.cuda.is_available())]  # training sees the machine as it is
 
 
+def test_a_process_leaving_at_ctrl_c_destroys_its_process_group_first(monkeypatch):
+    from nerfstudio.utils import comms
+
+    monkeypatch.setattr(comms, "LOCAL_PROCESS_GROUP", None)
+
+    def interrupted(*_: object) -> None:
+        assert torch.distributed.is_initialized()
+        raise SystemExit(130)  # what the trainer raises once every rank has agreed to stop
+
+    with pytest.raises(SystemExit) as exited:
+        compat.process_worker(
+            0, interrupted, 1, 1, 0, f"tcp://127.0.0.1:{_free_port()}", None, timedelta(seconds=30), "cpu"
+        )
+    assert exited.value.code == 130
+    assert not torch.distributed.is_initialized(), "left alive, gloo's threads may abort the interpreter's exit"
+
+
 def test_the_launcher_prints_the_failed_process_s_own_line_or_how_it_ended():
     from torch.multiprocessing import ProcessExitedException, ProcessRaisedException
 
