@@ -76,6 +76,31 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     )
 
 
+def test_a_variant_adds_two_sessions_whose_later_one_alone_has_its_options(tmp_path):
+    variant = "fraction=continual-ngp --pipeline.datamanager.current-task-fraction 0.75"
+    benchmark = dataclasses.replace(bench(tmp_path), variants=(variant,))
+    runs = {run.name: run for run in benchmark.changed_runs("room", "object-moved")}
+    first, later = (benchmark.session_config(runs["fraction"], index) for index in range(2))
+    assert first.pipeline.datamanager.current_task_fraction == 0.5, "the first session is continual-ngp's"
+    assert later.pipeline.datamanager.current_task_fraction == 0.75 and later.pipeline.continue_with_new_capture
+    assert later.load_dir == first.get_checkpoint_dir()
+    assert "--variants" in benchmark.command() and variant in benchmark.command_arguments()
+    taken = dataclasses.replace(benchmark, variants=("continual-ngp=continual-ngp --machine.seed 4",))
+    with pytest.raises(SystemExit, match="--variants continual-ngp: a run of the benchmark has that name"):
+        taken.changed_runs("room", "object-moved")
+
+
+def test_runs_names_the_runs_trained_and_tabulated_and_refuses_others(tmp_path):
+    benchmark = dataclasses.replace(bench(tmp_path), scenes=("room",), experiments=("changed",), runs=("iNGP-Incre",))
+    (chosen,) = [run for run in benchmark.changed_runs("room", "object-moved") if run.name == "iNGP-Incre"]
+    chosen.folder.mkdir(parents=True)  # trained before: read back, and no other run trains
+    (chosen.folder / MEASURES_FILENAME).write_text(json.dumps({"arguments": chosen.arguments, "measures": {"x": 1}}))
+    assert benchmark.measure() == {"room": {"changed-object-moved": {"iNGP-Incre": {"x": 1}}}}
+    unknown = dataclasses.replace(benchmark, runs=("continual-ngp", "joint"))
+    with pytest.raises(SystemExit, match=r"--runs: unknown joint \(known: continual-ngp, "):
+        unknown.measure()
+
+
 def test_a_run_is_read_back_only_when_trained_with_the_same_arguments(tmp_path):
     benchmark = bench(tmp_path)
     run = benchmark.split_runs("room")[0]

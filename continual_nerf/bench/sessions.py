@@ -2,7 +2,8 @@
 scenes.
 
     python -m continual_nerf.bench.sessions [--scenes room street] [--iterations-per-task 240]
-        [--changes object-moved wall-repainted] [--options="NS-TRAIN OPTIONS"] [--jobs 1] [--output-dir ...]
+        [--changes object-moved wall-repainted] [--runs NAME ...] [--variants "NAME=METHOD OPTIONS" ...]
+        [--options="NS-TRAIN OPTIONS"] [--jobs 1] [--output-dir ...]
 
 (a) split: the capture cut into two sessions, its first 3 tasks and then its last 2, the first session's images deleted
     before the second; against one uninterrupted 5-task run of the same budget. Both are measured on every task's test
@@ -13,7 +14,8 @@ scenes.
     continual-ngp (with its change guard and without, and with its proposal networks relearned), iNGP-Incre, and the
     joint bound trained on the new state alone and on both walks, each with the budget of the 5 tasks (and on the new
     state with the later session's 2 tasks); a two-session run's unchanged parts also against the end of its first
-    session.
+    session. `--variants` adds two-session runs of (b) whose later session has options of its own; `--runs` trains
+    and tabulates only the runs named (name "joint bound, new state" too for a variant's distance to it).
 
 Every run trains in a process of its own, its sessions one after the other; finished runs are read back, not trained
 again, so an interrupted benchmark resumes. `results.md` and `results.json` in the output folder hold the tables.
@@ -41,7 +43,7 @@ from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names, recipe_config
-from continual_nerf.bench.grid import DEMO, folder_name, source_commit, with_options
+from continual_nerf.bench.grid import DEMO, folder_name, parse_recipe, source_commit, with_options
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
@@ -125,6 +127,11 @@ class SessionsBenchmark(DemoBenchmark):
     options: Tuple[str, ...] = ()
     """ns-train options for every run (e.g. --machine.seed 1); continual-demo options after the word continual-demo
     (e.g. "continual-demo --width 32 --height 24 --num-frames 40")."""
+    runs: Tuple[str, ...] = ()
+    """Which runs to train and tabulate (names as the tables print them, and the variants'); none: every run."""
+    variants: Tuple[str, ...] = ()
+    """More runs of (b), each NAME=METHOD OPTIONS: two sessions of METHOD whose later session adds OPTIONS (e.g.
+    'fraction=continual-ngp --pipeline.datamanager.current-task-fraction 0.75')."""
     jobs: int = 1
     """Runs trained at once, each in a process of its own (give each OMP_NUM_THREADS=cores/jobs)."""
     output_dir: Path = Path("outputs/bench-sessions")
@@ -174,7 +181,7 @@ class SessionsBenchmark(DemoBenchmark):
                 Session(self.arguments(method, *later_options), later, LATER_TASKS),
             )
 
-        return [
+        runs = [
             two_sessions("continual-ngp", "continual-ngp"),
             two_sessions("continual-ngp, change guard off", "continual-ngp", "--pipeline.change-guard off"),
             two_sessions(
@@ -188,6 +195,15 @@ class SessionsBenchmark(DemoBenchmark):
             self.run(scene, experiment, "joint bound, new state, 2 tasks", Session(joint, later, LATER_TASKS)),
             self.run(scene, experiment, "joint bound, both walks", Session(joint, both, total)),
         ]
+        folders = {run.folder for run in runs}
+        for variant in map(parse_recipe, self.variants):
+            method, *options = variant.arguments
+            run = two_sessions(variant.name, method, shlex.join(options))
+            if run.folder in folders:
+                raise SystemExit(f"--variants {variant.name}: a run of the benchmark has that name (or run folder)")
+            folders.add(run.folder)
+            runs.append(run)
+        return runs
 
     def run(self, scene: str, experiment: str, name: str, *sessions: Session) -> Run:
         where = Path(scene) / experiment / folder_name(name)
@@ -228,6 +244,8 @@ class SessionsBenchmark(DemoBenchmark):
                 runs += self.split_runs(scene)
             if "changed" in self.experiments:
                 runs += [run for change in self.changes for run in self.changed_runs(scene, change)]
+        check_names("runs", self.runs, dict.fromkeys(run.name for run in runs))
+        runs = [run for run in runs if not self.runs or run.name in self.runs]
         pending = [run for run in runs if read_measures(run) is None]
         configs = [[self.session_config(run, i) for i in range(len(run.sessions))] for run in pending]
         if pending:
@@ -259,6 +277,10 @@ class SessionsBenchmark(DemoBenchmark):
         words = ["--scenes", *self.scenes, "--iterations-per-task", str(self.iterations_per_task)]
         words += ["--experiments", *self.experiments, "--changes", *self.changes]
         words += ["--rays-per-batch", str(self.rays_per_batch), "--device", self.device]
+        words += [
+            *(["--runs", *self.runs] if self.runs else []),
+            *(["--variants", *self.variants] if self.variants else []),
+        ]
         # one value after "=": tyro would read a value starting with "--" as an option of its own
         return words + ([f"--options={' '.join(self.options)}"] if self.options else [])
 
