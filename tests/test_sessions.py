@@ -238,6 +238,17 @@ PROPOSAL_NETWORKS = "proposal_networks."
 
 
 @pytest.mark.slow
+def test_a_later_session_trains_with_its_own_learning_rates_and_the_earlier_moments(two_sessions, tmp_path):
+    first, _, _ = two_sessions
+    config = continued(session(tmp_path / "outputs", tmp_path / "later", "later", first=False), first)
+    fields = config.optimizers["fields"]
+    config.optimizers["fields"] = {**fields, "optimizer": dataclasses.replace(fields["optimizer"], lr=0.02)}
+    optimizer = set_up(config).optimizers.optimizers["fields"]
+    assert [group["lr"] for group in optimizer.param_groups] == [0.02], "the earlier session's 0.01 came back"
+    assert optimizer.state, "the moments are the earlier session's"
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("relearn", [True, False])
 def test_a_later_session_relearns_the_proposal_networks_when_told_to(two_sessions, tmp_path, relearn):
     first, _, _ = two_sessions

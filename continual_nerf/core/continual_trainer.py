@@ -489,8 +489,7 @@ class ContinualTrainer(DeferredPauseTrainer):
         try:
             pipeline.continue_session(state["pipeline"], state["step"])
             for name, optimizer in self.optimizers.optimizers.items():
-                parameters = [p for group in optimizer.param_groups for p in group["params"]]
-                optimizer.load_state_dict(grow_optimizer_state(state["optimizers"][name], parameters))
+                optimizer.load_state_dict(grow_optimizer_state(state["optimizers"][name], optimizer))
             if initial_sampler is not None:
                 self._restart_sampler(initial_sampler)
             if self.config.load_scheduler:

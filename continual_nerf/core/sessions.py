@@ -465,10 +465,15 @@ def options_differing(saved: Mapping[str, Any], now: Mapping[str, Any]) -> List[
     ]
 
 
-def grow_optimizer_state(state: Dict[str, Any], parameters: Sequence[Tensor]) -> Dict[str, Any]:
-    """An optimizer's state dict whose moments (Adam's exp_avg, ...) of per-frame parameters have fewer rows than the
-    parameters now: grown with zero rows for the later frames, as a parameter that has not moved yet."""
-    grown = {**state, "state": dict(state["state"])}
+def grow_optimizer_state(state: Dict[str, Any], optimizer: torch.optim.Optimizer) -> Dict[str, Any]:
+    """An earlier session's optimizer state dict for `optimizer`, this session's: its moments (Adam's exp_avg, ...),
+    those of per-frame parameters, which have fewer rows than the parameters now, grown with zero rows for the later
+    frames (as a parameter that has not moved yet); the hyperparameters (learning rates, ...) `optimizer` was built
+    with, which this session's options set, not the earlier session's."""
+    parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
+    ours = [{key: value for key, value in group.items() if key != "params"} for group in optimizer.param_groups]
+    groups = [{**saved, **hyperparameters} for saved, hyperparameters in zip(state["param_groups"], ours)]
+    grown = {**state, "state": dict(state["state"]), "param_groups": groups}
     for index, moments in state["state"].items():
         if index >= len(parameters):
             continue
