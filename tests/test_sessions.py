@@ -34,6 +34,7 @@ from helpers import (
     write_transforms,
 )
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.scripts.train import train_loop
 
 from continual_nerf.bench.browser import free_port
@@ -243,7 +244,14 @@ def test_a_later_session_trains_with_its_own_learning_rates_and_the_earlier_mome
     config = continued(session(tmp_path / "outputs", tmp_path / "later", "later", first=False), first)
     fields = config.optimizers["fields"]
     config.optimizers["fields"] = {**fields, "optimizer": dataclasses.replace(fields["optimizer"], lr=0.02)}
-    optimizer = set_up(config).optimizers.optimizers["fields"]
+    trainer = set_up(config)
+    before, first_step = (
+        TrainingCallbackLocation.BEFORE_TRAIN_ITERATION,
+        trainer.pipeline.datamanager.session_first_step,
+    )
+    for callback in trainer.callbacks:  # the learning rates' schedule too starts from this session's
+        callback.run_callback_at_location(first_step, before)
+    optimizer = trainer.optimizers.optimizers["fields"]
     assert [group["lr"] for group in optimizer.param_groups] == [0.02], "the earlier session's 0.01 came back"
     assert optimizer.state, "the moments are the earlier session's"
 

@@ -469,10 +469,12 @@ def grow_optimizer_state(state: Dict[str, Any], optimizer: torch.optim.Optimizer
     """An earlier session's optimizer state dict for `optimizer`, this session's: its moments (Adam's exp_avg, ...),
     those of per-frame parameters, which have fewer rows than the parameters now, grown with zero rows for the later
     frames (as a parameter that has not moved yet); the hyperparameters (learning rates, ...) `optimizer` was built
-    with, which this session's options set, not the earlier session's."""
+    with, which this session's options set, and nothing else of the earlier session's groups (such as the base rate
+    --pipeline.lr-decay-per-task scales)."""
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
-    ours = [{key: value for key, value in group.items() if key != "params"} for group in optimizer.param_groups]
-    groups = [{**saved, **hyperparameters} for saved, hyperparameters in zip(state["param_groups"], ours)]
+    groups = [
+        {**group, "params": saved["params"]} for saved, group in zip(state["param_groups"], optimizer.param_groups)
+    ]
     grown = {**state, "state": dict(state["state"]), "param_groups": groups}
     for index, moments in state["state"].items():
         if index >= len(parameters):
