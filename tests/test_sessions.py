@@ -281,6 +281,20 @@ def test_a_later_session_relearns_the_proposal_networks_when_told_to(two_session
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("restart", [True, False])
+def test_a_later_session_restarts_the_optimizer_moments_when_told_to(two_sessions, tmp_path, restart):
+    first, _, _ = two_sessions
+    config = continued(session(tmp_path / "outputs", tmp_path / "later", "later", first=False), first)
+    config.pipeline.restart_optimizer_moments = restart
+    saved = read_checkpoint(find_checkpoint(first.get_checkpoint_dir(), None))["pipeline"]
+    trainer = set_up(config)
+    moments = [optimizer.state for optimizer in trainer.optimizers.optimizers.values()]
+    assert not any(moments) if restart else all(moments), "the moments are the loaded ones" if restart else "none"
+    weights = dict(trainer.pipeline.model.named_parameters())
+    assert all(torch.equal(value, saved[MODEL_PREFIX + key]) for key, value in weights.items()), "the weights stay"
+
+
+@pytest.mark.slow
 def test_the_earlier_tasks_rays_masks_codes_and_transforms_are_bit_identical_after_loading(tmp_path):
     first = masked_session(tmp_path / "outputs", masked_capture(tmp_path / "first"), "first")
     trained = train(first)

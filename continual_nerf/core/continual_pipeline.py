@@ -102,6 +102,10 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     ones give few samples to space the earlier session saw empty, where an object moved in is then learned slowly. The
     replay oracle keeps the loaded ones. Off: they go on from the loaded run's (a later session of an unchanged scene
     loses less)."""
+    restart_optimizer_moments: bool = False
+    """At a later session's start, every optimizer's moments (Adam's running averages of the gradients and of their
+    squares) start again from zero: the loaded ones average the earlier session's gradients, and a field that must
+    unlearn what changed learns the new state sooner without them. Off: they go on from the loaded run's."""
     change_guard: Literal["later-sessions", "every-task", "off"] = "later-sessions"
     """Skip replayed rays of earlier sessions' tasks whose surface an open-task frame sees changed (the new images
     win where they see a change): in a continued run's later sessions, in every task (of every earlier task), or never

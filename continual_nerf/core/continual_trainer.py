@@ -474,8 +474,9 @@ class ContinualTrainer(DeferredPauseTrainer):
         )
 
     def _continue_on_new_capture(self, state: Dict[str, Any], path: Path) -> None:
-        """Start this capture's tasks after the checkpoint's: its model, optimizers and random generators go on as if
-        the captures were one, the model the replay oracle of every earlier task."""
+        """Start this capture's tasks after the checkpoint's: its model, optimizers (their moments from zero with
+        --pipeline.restart-optimizer-moments) and random generators go on as if the captures were one, the model the
+        replay oracle of every earlier task."""
         pipeline, datamanager = self.pipeline, self.pipeline.datamanager
         check_resumable(state, path, find_checkpoint(path.parent, None))  # a closed task's weights alone go on no run
         record = checkpoint_record(state, path)
@@ -492,6 +493,9 @@ class ContinualTrainer(DeferredPauseTrainer):
                 optimizer.load_state_dict(grow_optimizer_state(state["optimizers"][name], optimizer))
             if initial_sampler is not None:
                 self._restart_sampler(initial_sampler)
+            if self.config.pipeline.restart_optimizer_moments:
+                for optimizer in self.optimizers.optimizers.values():
+                    optimizer.state.clear()
             if self.config.load_scheduler:
                 self.optimizers.load_schedulers(state.get("schedulers", {}))
             self.grad_scaler.load_state_dict(state["scalers"])
