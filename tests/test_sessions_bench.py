@@ -54,9 +54,9 @@ def test_the_split_is_the_first_three_fifths_then_the_rest_each_on_its_own_copy(
 
 def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_sessions(tmp_path):
     runs = {run.name: run for run in bench(tmp_path).changed_runs("room", "wall-repainted")}
-    restarted = "continual-ngp, proposal networks relearned, moments restarted"
+    moved = "continual-ngp, moved-object options"
     assert set(runs) == {"continual-ngp", "continual-ngp, change guard off", "continual-ngp, proposal networks relearned",
-                         restarted, "iNGP-Incre", "joint bound, new state", "joint bound, new state, 2 tasks",
+                         moved, "iNGP-Incre", "joint bound, new state", "joint bound, new state, 2 tasks",
                          "joint bound, both walks"}  # fmt: skip
     benchmark = bench(tmp_path)
     first, later = (benchmark.session_config(runs["continual-ngp"], index) for index in range(2))
@@ -67,8 +67,9 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     relearned = benchmark.session_config(runs["continual-ngp, proposal networks relearned"], 1)
     assert relearned.pipeline.relearn_proposal_networks and not later.pipeline.relearn_proposal_networks
     assert not relearned.pipeline.restart_optimizer_moments and not later.pipeline.restart_optimizer_moments
-    restarted_later = benchmark.session_config(runs[restarted], 1).pipeline
-    assert restarted_later.relearn_proposal_networks and restarted_later.restart_optimizer_moments
+    moved_later = benchmark.session_config(runs[moved], 1).pipeline
+    assert moved_later.relearn_proposal_networks and moved_later.restart_optimizer_moments
+    assert moved_later.change_margin == 1 and later.pipeline.change_margin == 0
     assert benchmark.session_config(runs["iNGP-Incre"], 1).method_name == "continual-ngp-incre"
     new_state = benchmark.session_config(runs["joint bound, new state"], 0)
     both = benchmark.session_config(runs["joint bound, both walks"], 0)
