@@ -10,7 +10,7 @@ import pytest
 import torch
 from helpers import demo_parser, tiny_config
 
-from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells, widened
+from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.errors import ContinualConfigError
@@ -84,21 +84,6 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
     assert torch.equal(view.distances, torch.full_like(view.distances, 2.0))
     changed_flat = start + torch.nonzero(torch.from_numpy(expected.reshape(-1))).view(-1)
     assert torch.equal(view.changed_pixels.sort().values, changed_flat), "one pixel per cell: the changed ones"
-    wider = open_task_view(1, dataset, lambda indices: indices, render, threshold=0.1, chunk=100, margin=1)  # type: ignore[arg-type]
-    grids = [(18 * 24 * frame, 18, 24) for frame in range(len(frames))]
-    assert torch.equal(wider.changed, widened(view.changed, grids, 1)) and wider.changed.sum() > view.changed.sum()
-    assert torch.equal(wider.changed_pixels, view.changed_pixels), "the open task's rays emphasise the changed cells"
-
-
-def test_a_margin_widens_each_frames_changed_cells_within_its_own_grid():
-    changed = torch.zeros(2 * 12, dtype=torch.bool)
-    changed[4 + 3] = True  # frame 1 (3 rows of 4): row 1, column 3, at its right edge
-    changed[12] = True  # frame 2: its first cell
-    grids = [(0, 3, 4), (12, 3, 4)]
-    first, second = widened(changed, grids, 1).view(2, 3, 4)
-    assert torch.equal(first, torch.tensor([[0, 0, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1]], dtype=torch.bool))
-    assert torch.equal(second, torch.tensor([[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 0, 0]], dtype=torch.bool))
-    assert torch.equal(widened(changed, grids, 0), changed)
 
 
 def test_a_changed_cells_pixels_are_its_whole_block_inside_its_frame():
@@ -135,8 +120,3 @@ def test_the_every_task_guard_waits_for_the_first_oracle(tmp_path):
 def test_a_change_emphasis_outside_its_range_is_one_line(share):
     with pytest.raises(ContinualConfigError, match=rf"^--pipeline.change-emphasis must be in \[0, 1\), got {share}$"):
         ContinualPipelineConfig(change_emphasis=share).validate()
-
-
-def test_a_negative_change_margin_is_one_line():
-    with pytest.raises(ContinualConfigError, match=r"^--pipeline.change-margin must be at least 0, got -1$"):
-        ContinualPipelineConfig(change_margin=-1).validate()

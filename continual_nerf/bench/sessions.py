@@ -11,7 +11,7 @@ scenes.
 (b) changed: a first session of 3 tasks over the whole path, then a second of 2 tasks that walks the path again after
     a change (continual-demo --laps 2 --change): on views between the path's frames (no run trains on them), PSNR of
     the changed region against the new state and of the rest against the scene as it was (identical there), for
-    continual-ngp (with its change guard and without, with its proposal networks relearned, and with every option the
+    continual-ngp (with its change guard and without, with its proposal networks relearned, and with the options the
     README gives for moved objects), iNGP-Incre, and the joint bound trained on the new state alone and on both walks, each
     with the budget of the 5 tasks (and on the new state with the later session's 2 tasks); a two-session run's unchanged parts also against the end of its first
     session. `--variants` adds two-session runs of (b) whose later session has options of its own; `--runs` trains
@@ -64,11 +64,7 @@ JOINT_OPTIONS = (
     f"--pipeline.lr-decay-start {CONTINUAL_NGP.pipeline.lr_decay_start}"
 )
 """The joint bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter."""
-MOVED_OBJECT_OPTIONS = (
-    "--pipeline.relearn-proposal-networks True",
-    "--pipeline.restart-optimizer-moments True",
-    "--pipeline.change-margin 1",
-)
+MOVED_OBJECT_OPTIONS = ("--pipeline.relearn-proposal-networks True", "--pipeline.restart-optimizer-moments True")
 """What the README recommends for a later capture where objects moved."""
 TARGETS = {
     "split": 0.2,

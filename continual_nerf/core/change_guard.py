@@ -9,8 +9,7 @@ oracle's depth puts it; when that point, seen from an open-task frame, falls in 
 behind the surface the oracle renders in that cell, the frame observes that point differently than the earlier tasks
 did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
 in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
-their replay: what the new images do not show keeps what the earlier session taught. A cell is judged by its centre
-pixel, which can miss a change's edge: a margin counts the cells around a changed one as changed too.
+their replay: what the new images do not show keeps what the earlier session taught.
 
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
@@ -19,12 +18,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, List, Tuple
+from typing import Callable, Tuple
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
-from torch.nn.functional import max_pool2d
 
 from continual_nerf.core.continual_dataset import ContinualDataset
 
@@ -117,17 +115,14 @@ def open_task_view(
     render: Render,
     threshold: float,
     chunk: int,
-    margin: int = 0,
 ) -> OpenTaskView:
     """Render the open task's frames (its pixels loaded in `dataset`) on their cells with the oracle (`render`, of
-    the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there; the guard counts
-    `margin` cells around each changed one as changed too (the open task's rays still emphasise the changed cells
-    alone)."""
+    the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there."""
     frames = dataset.frames_of_task(task).tolist()
     start, _ = dataset.open_task_pixel_range()
     assert dataset.task_pixels is not None, "the open task's pixels are loaded"
     cameras = dataset.cameras
-    indices, strides, grid_widths, grid_heights, offsets = [], [], [], [], []
+    indices, strides, grid_widths, offsets = [], [], [], []
     for frame in frames:
         width, height = int(cameras.width[frame]), int(cameras.height[frame])
         stride, rows, columns = cell_grid(width, height)
@@ -136,7 +131,6 @@ def open_task_view(
         indices.append(torch.stack([torch.full_like(y, frame), y, x], dim=-1).reshape(-1, 3))
         strides.append(stride)
         grid_widths.append(len(columns))
-        grid_heights.append(len(rows))
     cells = torch.cat(indices)
     flat = dataset.pixel_offsets[cells[:, 0]] + cells[:, 1] * cameras.width.view(-1)[cells[:, 0]] + cells[:, 2]
     pixels = dataset.task_pixels[flat - start]
@@ -149,8 +143,8 @@ def open_task_view(
             distances.append(distance.float().view(-1).cpu())
     difference = (torch.cat(colours) - pixels.float()).abs().mean(dim=-1)
     changed = (difference > threshold) & (difference > CONTRAST * difference.median())
-    valid = torch.ones_like(changed) if dataset.valid_pixels is None else dataset.valid_pixels.contains(flat)
-    changed &= valid  # a masked-out pixel shows nothing the open task learns
+    if dataset.valid_pixels is not None:  # a masked-out pixel shows nothing the open task learns
+        changed &= dataset.valid_pixels.contains(flat)
     cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
     changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
     poses = cameras.camera_to_worlds[frames].float()
@@ -164,22 +158,9 @@ def open_task_view(
         grid_widths=torch.tensor(grid_widths),
         cell_offsets=torch.tensor(offsets),
         distances=torch.cat(distances),
-        changed=widened(changed, list(zip(offsets, grid_heights, grid_widths)), margin) & valid,
+        changed=changed,
         changed_pixels=changed_pixels,
     )
-
-
-def widened(changed: Tensor, grids: List[Tuple[int, int, int]], margin: int) -> Tensor:
-    """(C,) `changed` with every cell within `margin` cells of a changed one of its frame's grid changed too (`grids`:
-    each frame's first cell, rows and columns)."""
-    if margin == 0:
-        return changed
-    wider = changed.clone()
-    size = 2 * margin + 1
-    for offset, rows, columns in grids:
-        block = changed[offset : offset + rows * columns].view(1, 1, rows, columns).float()
-        wider[offset : offset + rows * columns] = max_pool2d(block, size, stride=1, padding=margin).view(-1) > 0
-    return wider
 
 
 def pixels_of_cells(dataset: ContinualDataset, cells: Tensor, strides: Tensor) -> Tensor:

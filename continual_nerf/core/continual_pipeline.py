@@ -113,10 +113,6 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     change_threshold: float = 0.1
     """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
     which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
-    change_margin: int = 0
-    """Cells around each cell the change guard finds changed (a frame's grid of at most 1024 cells, each judged by its
-    centre pixel) that it counts as changed too: a change's edge, which a centre pixel can miss, then skips the
-    replayed rays that graze it; 0: the cells found changed alone."""
     change_emphasis: float = 0.25
     """Share of the open task's rays the change guard draws from the pixels it found changed, while it runs (the
     new images' change learned in the task's budget); 0: the open task's rays uniform over its pixels."""
@@ -133,8 +129,6 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
             )
         if not 0 <= self.change_emphasis < 1:
             raise ContinualConfigError(f"--pipeline.change-emphasis must be in [0, 1), got {self.change_emphasis}")
-        if self.change_margin < 0:
-            raise ContinualConfigError(f"--pipeline.change-margin must be at least 0, got {self.change_margin}")
         if not 0 < self.change_threshold < 1:
             raise ContinualConfigError(f"--pipeline.change-threshold must be in (0, 1), got {self.change_threshold}")
         for name in ("lr_decay_start", "pose_refinement_start"):
@@ -348,7 +342,6 @@ class ContinualPipeline(VanillaPipeline):
                 self._render_with_distance,
                 self.config.change_threshold,
                 datamanager.config.train_num_rays_per_batch,
-                self.config.change_margin,
             )
             self.guard_count = GuardCount()
         return self.open_task_view
