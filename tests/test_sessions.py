@@ -289,7 +289,7 @@ def test_a_later_session_restarts_the_optimizer_moments_when_told_to(two_session
     saved = read_checkpoint(find_checkpoint(first.get_checkpoint_dir(), None))["pipeline"]
     trainer = set_up(config)
     moments = [optimizer.state for optimizer in trainer.optimizers.optimizers.values()]
-    assert not any(moments) if restart else all(moments), "the moments are the loaded ones" if restart else "none"
+    assert not any(moments) if restart else all(moments), "moments left" if restart else "the loaded moments lost"
     weights = dict(trainer.pipeline.model.named_parameters())
     assert all(torch.equal(value, saved[MODEL_PREFIX + key]) for key, value in weights.items()), "the weights stay"
 

@@ -12,10 +12,11 @@ scenes.
     a change (continual-demo --laps 2 --change): on views between the path's frames (no run trains on them), PSNR of
     the changed region against the new state and of the rest against the scene as it was (identical there), for
     continual-ngp (with its change guard and without, with its proposal networks relearned, and with the options the
-    README gives for moved objects), iNGP-Incre, and the joint bound trained on the new state alone and on both walks, each
-    with the budget of the 5 tasks (and on the new state with the later session's 2 tasks); a two-session run's unchanged parts also against the end of its first
-    session. `--variants` adds two-session runs of (b) whose later session has options of its own; `--runs` trains
-    and tabulates only the runs named (name "joint bound, new state" too for a variant's distance to it).
+    README gives for moved objects), iNGP-Incre, and the joint bound trained on the new state alone and on both
+    walks, each with the budget of the 5 tasks (and on the new state with the later session's 2 tasks); a two-session
+    run's unchanged parts also against the end of its first session. `--variants` adds two-session runs of (b) whose
+    later session has options of its own; `--runs` trains and tabulates only the runs named (name "joint bound, new
+    state" too for a variant's distance to it).
 
 Every run trains in a process of its own, its sessions one after the other; finished runs are read back, not trained
 again, so an interrupted benchmark resumes. `results.md` and `results.json` in the output folder hold the tables.
