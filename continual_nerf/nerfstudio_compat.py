@@ -433,7 +433,7 @@ def process_worker(
     one. A process that exits by its own decision (Ctrl-C, answered by every rank at one step) destroys its process
     group first, as nerfstudio's worker does after training: one left alive may abort the interpreter's exit (gloo's
     threads still hold its work), and the launcher would report a SIGABRT instead of the interrupt. DDP's reducer
-    keeps the group alive even so, and the ranks other than 0 (which save and log nothing) leave without the
+    may keep the group alive even so: the ranks other than 0 (which save and log nothing) leave without the
     interpreter's finalization.
 
     Depends on: `_distributed_worker` taking these arguments and asserting `torch.cuda.is_available()` and
@@ -462,10 +462,10 @@ def process_worker(
             raise ProcessFailed(exit_.code) from None
         if dist.is_initialized():
             dist.destroy_process_group()
-        if rank != 0:  # DDP's reducer still holds the group, whose gloo threads can abort the interpreter's exit
+        if rank != 0:  # DDP's reducer may keep the group alive, whose gloo threads can abort the interpreter's exit
             sys.stdout.flush()
             sys.stderr.flush()
-            os._exit(exit_.code if isinstance(exit_.code, int) else 1)
+            os._exit(exit_.code or 0)
         raise
     except Exception as error:
         if lost_a_peer(error):

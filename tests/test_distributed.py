@@ -17,6 +17,7 @@ import torch
 import torch.multiprocessing
 from helpers import (
     RANK_RECORDS,
+    RUN_TIMEOUT,
     SUBPROCESS_ENV,
     collectives_probe,
     demo_parser,
@@ -82,7 +83,9 @@ def test_two_processes_train_every_task_into_one_accuracy_matrix(two_process_out
     checkpoint = read_checkpoint(max(checkpoint_steps(run_dir / "nerfstudio_models").values()))
     assert not [key for key in checkpoint["pipeline"] if ".module." in key]  # the unwrapped model, as one process
     ns_eval = [str(Path(sys.executable).with_name("ns-eval")), "--load-config", str(run_dir / "config.yml")]
-    evaluated = subprocess.run([*ns_eval, "--output-path", str(run_dir / "eval.json")], env=SUBPROCESS_ENV, check=False)
+    evaluated = subprocess.run(
+        [*ns_eval, "--output-path", str(run_dir / "eval.json")], env=SUBPROCESS_ENV, check=False, timeout=RUN_TIMEOUT
+    )
     assert evaluated.returncode == 0 and "psnr" in json.loads((run_dir / "eval.json").read_text())["results"]
 
 

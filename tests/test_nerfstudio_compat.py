@@ -271,7 +271,9 @@ def test_viewer_internals_the_panel_uses(tmp_path):
         compat.rerender(viewer)  # no browser connected: nothing to render, and no error
         import websocket  # the test extra's
 
-        page = websocket.create_connection(f"ws://127.0.0.1:{config.viewer.websocket_port}", suppress_origin=True)
+        page = websocket.create_connection(
+            f"ws://127.0.0.1:{config.viewer.websocket_port}", timeout=10, suppress_origin=True
+        )
         try:
             page.send_binary(compat.viewer_camera_message(np.ones(3), np.zeros(3), np.array([0, 0, 1.0]), 1.0, 1.4))
             deadline = time.monotonic() + 120  # a hang, not a slow machine
