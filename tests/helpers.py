@@ -5,6 +5,7 @@ ScanNet exported folder and .sens, TUM RGB-D, Waymo v1 TFRecord and v2 Parquet),
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import functools
@@ -24,6 +25,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import psutil
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
@@ -854,11 +856,21 @@ def finish(process: subprocess.Popen, what: str, timeout: float = RUN_TIMEOUT) -
     try:
         return process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        process.kill()
-        _, stderr = process.communicate()
+        kill_with_its_children(process)
+        _, stderr = process.communicate(timeout=60)
         raise AssertionError(
             f"{what} still ran after {timeout:g} s, a hang; its last output: {stderr[-2000:]}"
         ) from None
+
+
+def kill_with_its_children(process: subprocess.Popen) -> None:
+    """Kill `process` and every process it started: a training process it spawned would otherwise keep the output
+    pipes open, and reading them to their end would wait for ever."""
+    with contextlib.suppress(psutil.NoSuchProcess):  # it may end meanwhile, and so may each child
+        for child in psutil.Process(process.pid).children(recursive=True):
+            with contextlib.suppress(psutil.NoSuchProcess):
+                child.kill()
+    process.kill()
 
 
 def launch_from_json(arguments: str) -> None:
