@@ -23,7 +23,7 @@ METHODS = sorted(continual_methods())
 
 
 def set_reduced_config(config: ContinualTrainerConfig, tmp_path: Path) -> ContinualTrainerConfig:
-    """nerfstudio's set_reduced_config, but for the scene."""
+    """nerfstudio's set_reduced_config, but for the scene, and logging into the test's folder (not /tmp)."""
     config = copy.deepcopy(config)
     config.machine.device_type = "cpu"
     if hasattr(config.pipeline.model, "implementation"):
@@ -34,7 +34,6 @@ def set_reduced_config(config: ContinualTrainerConfig, tmp_path: Path) -> Contin
     config.pipeline.datamanager.train_num_images_to_sample_from = 1
     config.pipeline.datamanager.train_num_rays_per_batch = 4
     config.vis = "tensorboard"
-    config.logging.relative_log_dir = Path("/tmp/")
     if hasattr(config.pipeline.model, "num_coarse_samples"):
         config.pipeline.model.num_coarse_samples = 4  # type: ignore[attr-defined]
         config.pipeline.model.num_importance_samples = 4  # type: ignore[attr-defined]
@@ -59,3 +58,4 @@ def test_nerfstudio_reduced_run(method, tmp_path, capsys):
     assert not matrix.psnr and not matrix.finished, "2 iterations end the run inside task 1"
     assert "--max-num-iterations 2 may end the run before its last task" in capsys.readouterr().out
     assert sorted(path.name for path in config.get_checkpoint_dir().iterdir()) == ["step-000000001.ckpt"]
+    assert list(config.get_base_dir().glob("events.out.tfevents.*")), "tensorboard logs into the run's folder"
