@@ -1,8 +1,12 @@
-"""Eq. 4: pixels supervise the open task's rays, the oracle's colours the replayed ones, over one batch."""
+"""Eq. 4: pixels supervise the open task's rays, the oracle's colours the replayed ones, over one batch; with
+--pipeline.model.replay-weights-loss-mult, the oracle's weights along the replayed rays too."""
+
+import dataclasses
 
 import torch
+from helpers import demo_parser, tiny_config
 
-from continual_nerf.core.distillation_loss import distillation_loss
+from continual_nerf.core.distillation_loss import distillation_loss, weights_distillation_loss
 
 
 def test_each_term_sums_its_own_rays_squared_error_over_the_whole_batch():
@@ -32,3 +36,34 @@ def test_a_batch_without_replay_has_a_zero_distillation_term_and_gradients_reach
     assert terms["distillation_loss"].item() == 0.0
     (terms["rgb_loss"] + terms["distillation_loss"]).backward()
     assert pred.grad is not None and (pred.grad.abs().sum(dim=-1) > 0).all()
+
+
+def test_the_weights_term_is_the_squared_distance_of_the_distilled_rays_over_the_whole_batch():
+    weights = torch.tensor([[[0.2], [0.8]], [[0.5], [0.5]], [[0.0], [1.0]]], requires_grad=True)
+    target = torch.tensor([[[0.1], [0.7]], [[0.5], [0.0]]])  # the oracle's, for the two distilled rays
+    distilled = torch.tensor([True, False, True])
+    loss = weights_distillation_loss(weights, target, distilled)
+    assert torch.isclose(loss, torch.tensor((0.01 + 0.01 + 0.25 + 1.0) / 3))
+    loss.backward()
+    assert weights.grad is not None
+    assert (weights.grad[1] == 0).all(), "a ray the oracle does not teach gets no gradient"
+    assert (weights.grad[distilled] != 0).all()
+
+
+def test_replayed_rays_take_the_oracles_weights_at_the_models_own_samples(run_dir):
+    config = tiny_config(run_dir, demo_parser(), num_tasks=2)
+    config.pipeline.model = dataclasses.replace(config.pipeline.model, replay_weights_loss_mult=1.0)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    pipeline.datamanager.next_train(0)
+    pipeline.open_next_task()  # task 1 closes: the oracle is the model as it is
+    _, losses, _ = pipeline.get_train_loss_dict(0)
+    assert losses["weights_distillation_loss"] == 0.0, "a model equal to its oracle puts the light where it does"
+    with torch.no_grad():
+        for parameter in pipeline.model.field.parameters():
+            parameter.add_(0.05 * torch.randn_like(parameter))
+    outputs, losses, _ = pipeline.get_train_loss_dict(0)
+    assert losses["weights_distillation_loss"] > 0
+    (gradient,) = torch.autograd.grad(losses["weights_distillation_loss"], outputs["weights_list"][-1])
+    assert gradient.abs().sum() > 0

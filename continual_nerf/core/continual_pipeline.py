@@ -27,7 +27,7 @@ from continual_nerf.core.color_transform_fit import fit_open_task_color_transfor
 from continual_nerf.core.continual_datamanager import ContinualDataManager, ContinualDataManagerConfig
 from continual_nerf.core.depth_maps import DEPTH_KEY
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig, euclidean_depth_maps, trains_on_depth
-from continual_nerf.core.distillation_loss import REPLAY_SKIPPED
+from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, REPLAY_WEIGHTS, distilled_rays
 from continual_nerf.core.distributed import TaskDecision
 from continual_nerf.core.evaluation import AlignedEvalCameras, FrameScores, PoseAlignment, evaluate_frames
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
@@ -264,6 +264,8 @@ class ContinualPipeline(VanillaPipeline):
         ray_bundle, batch = self.datamanager.next_train(step)
         self.add_replay_targets(ray_bundle, batch)
         model_outputs = model(ray_bundle)
+        if self.distills_replay_weights:
+            self.add_replay_weights(model_outputs, batch)
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         return model_outputs, loss_dict, metrics_dict
@@ -274,6 +276,22 @@ class ContinualPipeline(VanillaPipeline):
         (--pipeline.model.distill-replay-depth)."""
         model = self.config.model
         return isinstance(model, ContinualNGPDepthModelConfig) and model.distill_replay_depth
+
+    @property
+    def distills_replay_weights(self) -> bool:
+        """Whether replayed rays' weights along the ray are distilled too (--pipeline.model.replay-weights-loss-mult)."""
+        model = self.config.model
+        return isinstance(model, ContinualNGPModelConfig) and model.replay_weights_loss_mult > 0
+
+    def add_replay_weights(self, outputs: Dict[str, Any], batch: Dict[str, Any]) -> None:
+        """The oracle's weights (REPLAY_WEIGHTS) at the model's samples along the replayed rays it teaches."""
+        if "is_replay" not in batch:
+            return
+        distilled = distilled_rays(batch["is_replay"], batch.get(REPLAY_SKIPPED))
+        if not distilled.any():
+            return
+        samples = outputs["ray_samples_list"][-1]
+        batch[REPLAY_WEIGHTS] = self.replay_oracle.weights_at(samples[distilled.to(samples.frustums.origins.device)])
 
     def add_replay_targets(self, ray_bundle: RayBundle, batch: Dict[str, Any]) -> None:
         """Fill the targets of replayed rays with the colours the frozen oracle renders for them (Eq. 4), and their

@@ -8,6 +8,13 @@ import torch
 
 REPLAY_SKIPPED = "replay_skipped"
 """Batch key: replayed rays the change guard skips (an open-task frame sees their surface changed)."""
+REPLAY_WEIGHTS = "replay_weights"
+"""Batch key: the replay oracle's weights (N, S, 1) at the model's samples along the distilled rays."""
+
+
+def distilled_rays(is_replay: torch.Tensor, skipped: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(N,) the replayed rays the oracle teaches: all of them but those the change guard skips."""
+    return is_replay if skipped is None else is_replay & ~skipped.to(is_replay.device)
 
 
 def distillation_loss(
@@ -25,8 +32,16 @@ def distillation_loss(
     squared_error = (pred_rgb - target_rgb).pow(2).sum(dim=-1) / pred_rgb.shape[-1]
     num_rays = max(1, squared_error.numel())
     replay = is_replay.to(squared_error.device)
-    distilled = replay if skipped is None else replay & ~skipped.to(squared_error.device)
+    distilled = distilled_rays(replay, skipped)
     return {
         "rgb_loss": squared_error[~replay].sum() / num_rays,
         "distillation_loss": squared_error[distilled].sum() / num_rays,
     }
+
+
+def weights_distillation_loss(weights: torch.Tensor, target: torch.Tensor, distilled: torch.Tensor) -> torch.Tensor:
+    """Geometry's share of the distillation: how far the model's weights (N, S, 1) along each distilled ray are from the
+    oracle's `target` at the same samples (squared error summed over the ray: its gradient fades as they agree, where
+    an L1's would keep pushing every sample), summed over those rays and divided by the whole batch size, as Eq. 4's
+    terms are. Colour alone lets a closed task's surfaces drift wherever their colour still renders."""
+    return (weights[distilled.to(weights.device)] - target).pow(2).sum() / max(1, weights.shape[0])

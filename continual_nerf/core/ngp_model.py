@@ -16,7 +16,13 @@ from torch.nn import Parameter
 
 from continual_nerf.compilation import compile_model, stop_input_gradients
 from continual_nerf.core.depth_maps import DEPTH_KEY, DIRECTIONS_NORM, METRES_PER_SCENE_UNIT, depth_errors
-from continual_nerf.core.distillation_loss import REPLAY_SKIPPED, distillation_loss
+from continual_nerf.core.distillation_loss import (
+    REPLAY_SKIPPED,
+    REPLAY_WEIGHTS,
+    distillation_loss,
+    distilled_rays,
+    weights_distillation_loss,
+)
 from continual_nerf.core.per_frame import (
     FRAME_CAMERA,
     FRAME_TASK,
@@ -97,12 +103,21 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     replay_sample_fraction: float = 1.0
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
     1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
+    replay_weights_loss_mult: float = 0.0
+    """Lambda of the geometry distillation: replayed rays' weights along the ray pulled to those the replay oracle's
+    density gives at the same samples (squared error), so closed tasks' surfaces stay where they were. It pays where
+    depth maps made each task's geometry right as it closed (continual-ngp-depth: 0.03); from colour alone it holds
+    early tasks' rough geometry that later tasks would correct. 0: colour only (the paper)."""
 
     def validate(self) -> None:
         super().validate()
         if not self.replay_sample_fraction > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
+            )
+        if not self.replay_weights_loss_mult >= 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.replay-weights-loss-mult must not be negative, got {self.replay_weights_loss_mult}"
             )
         if not self.near_plane_metres > 0:
             raise ContinualConfigError(
@@ -290,6 +305,10 @@ class ContinualNGPModel(NerfactoModel):
                     outputs["rgb"], batch["image"].to(self.device), batch["is_replay"], batch.get(REPLAY_SKIPPED)
                 )
             )
+        if REPLAY_WEIGHTS in batch:
+            distilled = distilled_rays(batch["is_replay"], batch.get(REPLAY_SKIPPED))
+            loss = weights_distillation_loss(outputs["weights_list"][-1], batch[REPLAY_WEIGHTS], distilled)
+            loss_dict["weights_distillation_loss"] = self.config.replay_weights_loss_mult * loss
         return loss_dict
 
     def get_image_metrics_and_images(
