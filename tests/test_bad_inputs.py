@@ -382,6 +382,13 @@ CORPUS = [
         ),
     ),
     BadInput(
+        "replay-weights-loss-mult-negative",
+        lambda context: (
+            with_model_options(earlier_run_config(), replay_weights_loss_mult=-0.1),
+            "--pipeline.model.replay-weights-loss-mult must not be negative, got -0.1",
+        ),
+    ),
+    BadInput(
         "rays-per-batch-0",
         option("--pipeline.datamanager.train-num-rays-per-batch must be at least 1, got 0", train_num_rays_per_batch=0),
     ),
