@@ -67,3 +67,24 @@ def test_replayed_rays_take_the_oracles_weights_at_the_models_own_samples(run_di
     assert losses["weights_distillation_loss"] > 0
     (gradient,) = torch.autograd.grad(losses["weights_distillation_loss"], outputs["weights_list"][-1])
     assert gradient.abs().sum() > 0
+
+
+def test_the_oracle_renders_and_weighs_with_autograd_off(run_dir, monkeypatch):
+    trainer = tiny_config(run_dir, demo_parser(), num_tasks=2).setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    pipeline.datamanager.next_train(0)
+    pipeline.open_next_task()
+    oracle = pipeline.replay_oracle
+    grad_enabled = []
+    for module, name in ((oracle.model, "forward"), (oracle.model.field, "get_density")):
+        original = getattr(module, name)
+        monkeypatch.setattr(
+            module, name, lambda *a, f=original, **k: grad_enabled.append(torch.is_grad_enabled()) or f(*a, **k)
+        )
+    ray_bundle, batch = pipeline.datamanager.next_train(0)
+    replayed = ray_bundle[batch["is_replay"]]
+    oracle.outputs(replayed)
+    outputs = pipeline.model(replayed)
+    oracle.weights_at(outputs["ray_samples_list"][-1])
+    assert grad_enabled and not any(grad_enabled), "the frozen copy never builds a graph for a training step's backward"

@@ -79,7 +79,6 @@ class ReplayOracle(nn.Module):
         return outputs["rgb"], depth_target(outputs, ray_bundle, euclidean)
 
     @torch.no_grad()
-    @torch.no_grad()
     def weights_at(self, ray_samples: RaySamples) -> torch.Tensor:
         """The weights (N, S, 1) the frozen copy's density gives `ray_samples` (the model's own samples along replayed
         rays): where along each ray the oracle puts the light, at the points the model is trained at."""
@@ -87,6 +86,7 @@ class ReplayOracle(nn.Module):
         density, _ = getattr(self.model, "field").get_density(ray_samples)
         return ray_samples.get_weights(density)
 
+    @torch.no_grad()
     def outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
         """What the frozen copy renders along each ray (as `render` renders it): its model's outputs."""
         assert self.model is not None, "the replay oracle is used before the first task ended"
