@@ -67,6 +67,8 @@ JOINT_OPTIONS = (
 """The joint bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter."""
 MOVED_OBJECT_OPTIONS = ("--pipeline.relearn-proposal-networks True", "--pipeline.restart-optimizer-moments True")
 """What the README recommends for a later capture where objects moved."""
+TITLE = "Sessions: a trained run learns a later capture"
+"""The heading of the benchmark's tables."""
 TARGETS = {
     "split": 0.2,
     "changed region": 1.0,
@@ -489,7 +491,7 @@ def print_table(title: str, columns: Sequence[str], rows: List[List[str]]) -> No
 
 def markdown(command: str, tables: Tables, level: int = 1) -> str:
     """The tables under a heading of `level` (#: a page of its own, ##: a section of docs/results.md)."""
-    lines = [f"{'#' * level} Sessions: a trained run learns a later capture", "", f"`{command}`", ""]
+    lines = [f"{'#' * level} {TITLE}", "", f"`{command}`", ""]
     lines += [
         f"Targets: (a) two sessions within {TARGETS['split']} dB of one run; (b) the changed region within "
         f"{TARGETS['changed region']} dB of the joint bound on the new state, the unchanged parts losing at most "

@@ -1,0 +1,83 @@
+"""docs/results.md regenerated section by section: the sections asked for are replaced, the others kept word for word."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List
+
+import pytest
+
+from continual_nerf.bench import results
+from continual_nerf.bench.results import HEADER, SECTION_TITLES, SECTIONS, Results
+
+
+def section(name: str, body: str) -> List[str]:
+    return [f"## {SECTION_TITLES[name]}", "", body, ""]
+
+
+def page(tmp_path: Path, body: str) -> Path:
+    """A results page whose every section holds `body` (two for the real-capture flaws, as the generator writes)."""
+    lines = ["# Results", "", "an older header", ""]
+    for name in SECTIONS:
+        lines += section(name, f"{name} {body}")
+        if name == "real-capture":
+            lines += [f"## {SECTION_TITLES[name]}: street", "", f"{name} street {body}", ""]
+    path = tmp_path / "results.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def fresh(name: str):
+    return lambda _self: section(name, f"{name} new")
+
+
+@pytest.fixture
+def no_training(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each section's builder returns fixed lines instead of training its benchmark."""
+    for name, method in zip(SECTIONS, ("quality", "depth", "sweep", "capture", "sessions")):
+        monkeypatch.setattr(Results, f"{method}_lines", fresh(name))
+
+
+def test_the_sections_asked_for_are_replaced_and_the_others_kept_word_for_word(tmp_path: Path, no_training) -> None:
+    docs = page(tmp_path, "old")
+    Results(docs=docs, sections=("depth", "sessions")).main()
+    text = docs.read_text()
+    assert text.startswith("\n".join(HEADER))
+    assert "an older header" not in text
+    for name in ("quality", "sweep", "real-capture"):
+        assert f"{name} old" in text and f"{name} new" not in text
+    assert "real-capture street old" in text
+    for name in ("depth", "sessions"):
+        assert f"{name} new" in text and f"{name} old" not in text
+    order = [text.index(f"## {SECTION_TITLES[name]}") for name in SECTIONS]
+    assert order == sorted(order)
+
+
+def test_every_section_regenerated_needs_no_page(tmp_path: Path, no_training) -> None:
+    docs = tmp_path / "results.md"
+    Results(docs=docs).main()
+    assert all(f"{name} new" in docs.read_text() for name in SECTIONS)
+
+
+def test_a_section_to_keep_that_the_page_lacks_is_a_one_line_error(tmp_path: Path, no_training) -> None:
+    docs = page(tmp_path, "old")
+    docs.write_text(docs.read_text().replace(f"## {SECTION_TITLES['sweep']}", "## Something else"))
+    with pytest.raises(SystemExit, match=r"results\.md has no section '## Long captures.*--sections \.\.\. sweep"):
+        Results(docs=docs, sections=("depth",)).main()
+    with pytest.raises(SystemExit, match="does not exist"):
+        Results(docs=tmp_path / "missing.md", sections=("depth",)).main()
+
+
+def test_an_unknown_section_is_refused_before_anything_trains(tmp_path: Path, no_training) -> None:
+    docs = page(tmp_path, "old")
+    with pytest.raises(SystemExit, match="sections"):
+        Results(docs=docs, sections=("depth", "colour")).main()
+    assert "depth old" in docs.read_text()
+
+
+def test_provenance_names_the_commits_runs_were_trained_at_once_each() -> None:
+    line = Results(jobs=2).provenance(["b", "a", "b"])
+    assert "from runs trained at `a`, `b`;" in line
+    assert "2 run(s) at once" in line
+    assert "runs trained" not in Results().provenance([])
+    assert results.grid_commits([]) == []
