@@ -83,12 +83,17 @@ continual_ngp_stream = MethodSpecification(
 
 
 def _depth(config: ContinualTrainerConfig) -> ContinualTrainerConfig:
-    """`config` whose model trains on the capture's depth maps too, with depth-nerfacto's losses; every other option
-    stays the same."""
+    """`config` whose model trains on the capture's depth maps too, with depth-nerfacto's losses; the options `config`
+    sets apart from its model's defaults stay, the depth model's defaults (its own and those it changes) apply to the
+    rest."""
     config = copy.deepcopy(config)
     config.method_name = "continual-ngp-depth"
-    model = config.pipeline.model
-    options = {f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.init and f.name != "_target"}
+    model, defaults = config.pipeline.model, type(config.pipeline.model)()
+    options = {
+        f.name: getattr(model, f.name)
+        for f in dataclasses.fields(model)
+        if f.init and f.name != "_target" and getattr(model, f.name) != getattr(defaults, f.name)
+    }
     config.pipeline.model = ContinualNGPDepthModelConfig(**options)
     return config
 

@@ -1,5 +1,6 @@
 """Eq. 4: pixels supervise the open task's rays, the oracle's colours the replayed ones, over one batch; with
---pipeline.model.replay-weights-loss-mult, the oracle's weights along the replayed rays too."""
+--pipeline.model.replay-weights-loss-mult (continual-ngp-depth's default), the oracle's weights along the replayed rays
+too."""
 
 import dataclasses
 
@@ -7,6 +8,7 @@ import torch
 from helpers import demo_parser, tiny_config
 
 from continual_nerf.core.distillation_loss import distillation_loss, weights_distillation_loss
+from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_DEPTH
 
 
 def test_each_term_sums_its_own_rays_squared_error_over_the_whole_batch():
@@ -88,3 +90,8 @@ def test_the_oracle_renders_and_weighs_with_autograd_off(run_dir, monkeypatch):
     outputs = pipeline.model(replayed)
     oracle.weights_at(outputs["ray_samples_list"][-1])
     assert grad_enabled and not any(grad_enabled), "the frozen copy never builds a graph for a training step's backward"
+
+
+def test_continual_ngp_depth_distils_geometry_and_colour_only_continual_ngp_does_not():
+    assert CONTINUAL_NGP_DEPTH.pipeline.model.replay_weights_loss_mult > 0
+    assert CONTINUAL_NGP.pipeline.model.replay_weights_loss_mult == 0

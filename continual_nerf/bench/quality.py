@@ -57,7 +57,7 @@ RECIPES: Dict[str, str] = {
     "continual-ngp-depth": "continual-ngp-depth",
     "continual-ngp-depth, sensor flaws": f"continual-ngp-depth continual-demo {SENSOR_FLAWS}",
     "continual-ngp-depth, stereo flaws": f"continual-ngp-depth continual-demo {STEREO_FLAWS}",
-    "continual-ngp-depth, geometry distilled": "continual-ngp-depth --pipeline.model.replay-weights-loss-mult 0.03",
+    "continual-ngp-depth, geometry not distilled": "continual-ngp-depth --pipeline.model.replay-weights-loss-mult 0",
     # the bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter too
     JOINT: f"continual-ngp-joint {FALLING_RATES}",
     "joint, depth": f"continual-ngp-depth --pipeline.datamanager.joint True --pipeline.datamanager.replay False "

@@ -58,21 +58,21 @@ DEPTH_RECIPES = (
     "continual-ngp-depth",
     "continual-ngp-depth, sensor flaws",
     "continual-ngp-depth, stereo flaws",
-    "continual-ngp-depth, geometry distilled",
+    "continual-ngp-depth, geometry not distilled",
     "joint, depth",
 )
 """Colour alone, with the demo's exact depth maps, with an indoor depth sensor's flaws and with a car's stereo rig's,
-with the replay oracle's weights distilled along replayed rays, and the joint bound with depth."""
+with replayed rays teaching colour only (no geometry distillation), and the joint bound with depth."""
 DEPTH_PLOT = "depth.png"
 """The depth grid's plot of PSNR against iterations per task, beside the results page."""
 DEPTH_NOTE = (
     "The demo scenes' depth maps: exact, or with a sensor's flaws (noise growing with distance, no depth beyond a "
     "range, holes at edges, dropped pixels): *sensor flaws* an indoor structured-light sensor's (Kinect: nothing beyond "
     "4 m, which leaves a street mostly without depth), *stereo flaws* a car's stereo rig's (nothing beyond 40 m; noise "
-    "5 cm at 8.5 m, 1.1 m at 40 m). *geometry distilled*: replayed rays' weights along the ray distilled from the "
-    "replay oracle too (`--pipeline.model.replay-weights-loss-mult 0.03`). *depth abs rel*: mean absolute relative "
-    "depth error of the final model "
-    "on the test frames; *largest depth error growth*: the most any task's depth error grew after its task closed."
+    "5 cm at 8.5 m, 1.1 m at 40 m). continual-ngp-depth distils the replay oracle's weights along replayed rays beside "
+    "their colour; *geometry not distilled*: their colour only (`--pipeline.model.replay-weights-loss-mult 0`). "
+    "*depth abs rel*: mean absolute relative depth error of the final model on the test frames; *largest depth error "
+    "growth*: the most any task's depth error grew after its task closed."
 )
 SWEEP_SETTINGS = ("2x120", "5x120", "10x120", "20x120", "40x120")
 """The task-count sweep: the long street in 2 to 40 tasks at a fixed budget per task."""

@@ -4,7 +4,8 @@ nerfstudio's DS-NeRF or URF depth loss (`depth_loss`, applied as depth-nerfacto 
 and the field, with its sigma and its schedule) on the rays a batch gives a depth target (`depth_image` above 0): the
 open task's pixels that have a depth measurement, stored pixels of a replay buffer, and, with
 --pipeline.model.distill-replay-depth, replayed rays with the depth the replay oracle renders. Every other ray has 0
-and adds nothing: depth-nerfacto's losses mask it out. Depth is z-depth (depth maps as sensors record them), turned
+and adds nothing: depth-nerfacto's losses mask it out. Replayed rays distil the oracle's weights along the ray by
+default (--pipeline.model.replay-weights-loss-mult), so the geometry a task's depth maps taught holds after it closes. Depth is z-depth (depth maps as sensors record them), turned
 into distance along each ray with the ray's direction norm (`is_euclidean_depth` False).
 """
 
@@ -41,6 +42,9 @@ class ContinualNGPDepthModelConfig(ContinualNGPModelConfig, DepthNerfactoModelCo
     depth_loss_type: DepthLossType = DepthLossType.DS_NERF
     """Depth loss: DS_NERF (DS-NeRF) or URF (Urban Radiance Fields); SPARSENERF_RANKING needs nerfstudio's pair
     sampler and pseudo-depth, which continual training does not draw."""
+    replay_weights_loss_mult: float = 0.03
+    """Lambda of the geometry distillation: replayed rays' weights along the ray pulled to the replay oracle's, so a
+    closed task's surfaces stay where its depth maps put them; 0: replayed rays teach colour only."""
     distill_replay_depth: bool = False
     """Give replayed rays the depth the replay oracle renders as their depth target, as their colour; off: only the
     open task's pixels (and a replay buffer's) carry depth."""

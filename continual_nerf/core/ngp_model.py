@@ -106,7 +106,7 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     replay_weights_loss_mult: float = 0.0
     """Lambda of the geometry distillation: replayed rays' weights along the ray pulled to those the replay oracle's
     density gives at the same samples (squared error), so closed tasks' surfaces stay where they were. It pays where
-    depth maps made each task's geometry right as it closed (continual-ngp-depth: 0.03); from colour alone it holds
+    depth maps made each task's geometry right as it closed (continual-ngp-depth's default); from colour alone it holds
     early tasks' rough geometry that later tasks would correct. 0: colour only (the paper)."""
 
     def validate(self) -> None:
