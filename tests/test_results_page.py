@@ -31,16 +31,31 @@ def fresh(name: str):
     return lambda _self: section(name, f"{name} new")
 
 
+class FinishedQuality:
+    def measure(self) -> dict:
+        return {"room": {}}
+
+
 @pytest.fixture
 def no_training(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each section's builder returns fixed lines instead of training its benchmark."""
+    """Each section's builder returns fixed lines instead of training its benchmark; the quality grid's finished runs
+    give the README a fixed table."""
     for name, method in zip(SECTIONS, ("quality", "depth", "sweep", "capture", "sessions")):
         monkeypatch.setattr(Results, f"{method}_lines", fresh(name))
+    monkeypatch.setattr(Results, "quality", lambda _self: FinishedQuality())
+    monkeypatch.setattr(results, "summary_table", lambda grid: f"table of {sorted(grid)}")
+
+
+def readme(tmp_path: Path) -> Path:
+    path = tmp_path / "README.md"
+    path.write_text("intro\n<!-- results: begin -->\nold table\n<!-- results: end -->\nend\n")
+    return path
 
 
 def test_the_sections_asked_for_are_replaced_and_the_others_kept_word_for_word(tmp_path: Path, no_training) -> None:
     docs = page(tmp_path, "old")
-    Results(docs=docs, sections=("depth", "sessions")).main()
+    Results(docs=docs, readme=readme(tmp_path), sections=("depth", "sessions")).main()
+    assert "old table" in (tmp_path / "README.md").read_text(), "the README's table comes with the quality section"
     text = docs.read_text()
     assert text.startswith("\n".join(HEADER))
     assert "an older header" not in text
@@ -55,8 +70,9 @@ def test_the_sections_asked_for_are_replaced_and_the_others_kept_word_for_word(t
 
 def test_every_section_regenerated_needs_no_page(tmp_path: Path, no_training) -> None:
     docs = tmp_path / "results.md"
-    Results(docs=docs).main()
+    Results(docs=docs, readme=readme(tmp_path)).main()
     assert all(f"{name} new" in docs.read_text() for name in SECTIONS)
+    assert "\ntable of ['room']\n" in (tmp_path / "README.md").read_text()
 
 
 def test_a_section_to_keep_that_the_page_lacks_is_a_one_line_error(tmp_path: Path, no_training) -> None:

@@ -130,7 +130,7 @@ class Results:
     output_dir: Path = Path("outputs/results")
     """The runs; finished ones found here are read back, not trained again."""
     docs: Path = Path("docs/results.md")
-    """The page written (replaced whole)."""
+    """The page written: its header and the sections regenerated replaced, the others kept."""
     readme: Path = Path("README.md")
     """The README whose table between the results markers is replaced (with the quality section)."""
     sections: Tuple[str, ...] = SECTIONS
@@ -185,12 +185,13 @@ class Results:
             lines += build[name]() if name in self.sections else kept[name]
         write_text_atomically(self.docs, "\n".join(lines))
         CONSOLE.print(f"[bold green]Wrote the sections {', '.join(self.sections)} of {self.docs}")
+        if "quality" in self.sections:  # its runs are finished: read back, not trained again
+            replace_readme_table(self.readme, summary_table(self.quality().measure()))
+            CONSOLE.print(f"[bold green]Wrote the results table of {self.readme}")
 
     def quality_lines(self) -> List[str]:
         bench = self.quality()
         results = bench.measure()
-        replace_readme_table(self.readme, summary_table(results))
-        CONSOLE.print(f"Wrote the results table of {self.readme}")
         provenance = self.provenance(grid_commits(results.values()))
         return quality_section(bench, results, SECTION_TITLES["quality"], BOUNDS_NOTE, provenance)
 
