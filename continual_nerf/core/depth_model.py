@@ -5,8 +5,9 @@ and the field, with its sigma and its schedule) on the rays a batch gives a dept
 open task's pixels that have a depth measurement, stored pixels of a replay buffer, and, with
 --pipeline.model.distill-replay-depth, replayed rays with the depth the replay oracle renders. Every other ray has 0
 and adds nothing: depth-nerfacto's losses mask it out. Replayed rays distil the oracle's weights along the ray by
-default (--pipeline.model.replay-weights-loss-mult), so the geometry a task's depth maps taught holds after it closes. Depth is z-depth (depth maps as sensors record them), turned
-into distance along each ray with the ray's direction norm (`is_euclidean_depth` False).
+default (--pipeline.model.replay-weights-loss-mult), so the geometry a task's depth maps taught holds after it closes.
+Depth is z-depth (depth maps as sensors record them), turned into distance along each ray with the ray's direction
+norm (`is_euclidean_depth` False).
 """
 
 from __future__ import annotations
