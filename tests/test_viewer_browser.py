@@ -252,9 +252,14 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         return render(camera, **options)
 
     travel.pipeline.model.get_outputs_for_camera = held_while_the_line_says_rendering
+
+    def checkpoint_line() -> str:
+        """The checkpoint line on the page and in the viewer, for a wait's message."""
+        return f"page {line(chromium, CHECKPOINT_LABEL)!r}, viewer {travel.checkpoint.content!r}"
+
     try:
         chromium.navigate(f"http://127.0.0.1:{options.websocket_port}")
-        wait_for("the task slider", lambda: chromium.input_value("Task") == "2")
+        wait_for("the task slider", lambda: chromium.input_value("Task") == "2", seen=checkpoint_line)
         assert line(chromium, CHECKPOINT_LABEL) == f"end of task 2, step-{accuracy.steps[1]:09d}.ckpt"
         assert not chromium.text_cut_off(CHECKPOINT_LABEL)
         assert ACCURACY_ALT in chromium.images()
@@ -269,9 +274,14 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         wait_for(
             "the page to say task 1's view renders",
             lambda: line(chromium, CHECKPOINT_LABEL).startswith(f"{task_1}, {RENDERING}"),
+            seen=checkpoint_line,
         )
         renders_released.set()
-        wait_for("the page to say task 1's view has rendered", lambda: line(chromium, CHECKPOINT_LABEL) == task_1)
+        wait_for(
+            "the page to say task 1's view has rendered",
+            lambda: line(chromium, CHECKPOINT_LABEL) == task_1,
+            seen=checkpoint_line,
+        )
         end_of_task_1 = read_checkpoint(run_dir / "nerfstudio_models" / f"step-{accuracy.steps[0]:09d}.ckpt")
         for name, value in travel.pipeline.model.state_dict().items():
             if isinstance(value, torch.Tensor):
@@ -286,3 +296,8 @@ def test_finished_run_viewer_loads_the_checkpoint_of_the_chosen_task(chromium, t
         )
     finally:
         travel.viewer.viser_server.stop()
+
+
+def test_a_wait_that_times_out_says_what_it_saw_last():
+    with pytest.raises(AssertionError, match="waiting for task 1; last seen: 'end of task 2'"):
+        wait_for("task 1", lambda: False, timeout=0.5, seen=lambda: "end of task 2")

@@ -154,12 +154,17 @@ class DevTools:
         self.process.wait(timeout=30)
 
 
-def wait_for(what: str, condition: Callable[[], Any], timeout: float = 240.0) -> None:
+def wait_for(
+    what: str, condition: Callable[[], Any], timeout: float = 240.0, seen: Optional[Callable[[], Any]] = None
+) -> None:
     """Poll `condition` until it holds; a hang detector, not a speed check: the timeout is generous because a busy
-    shared 2-core machine renders several times slower than a quiet one."""
+    shared 2-core machine renders several times slower than a quiet one. `seen` says what the page shows instead,
+    for the message of a wait that timed out."""
     deadline = time.monotonic() + timeout
     while not condition():
-        assert time.monotonic() < deadline, f"timed out after {timeout:g} s waiting for {what}"
+        if time.monotonic() >= deadline:
+            shown = "" if seen is None else f"; last seen: {seen()!r}"
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}{shown}")
         time.sleep(0.2)
 
 
