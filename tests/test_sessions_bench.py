@@ -17,6 +17,7 @@ from continual_nerf.bench.sessions import (
     changed_rows,
     markdown,
     read_measures,
+    run_commits,
     split_rows,
     views_between_frames,
 )
@@ -136,8 +137,11 @@ def test_the_tables_say_whether_each_target_is_met():
     assert rows[1][2:] == ["-2.00 MISSED", "23.00", "-2.30 MISSED"] and rows[2][2] == rows[2][4] == "n/a"
     text = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])])
     assert "within 0.2 dB of one run" in text and "| x |" in text
-    section = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])], level=2)
+    section = markdown("python -m continual_nerf.bench.sessions", [("room", ("run",), [["x"]])], 2, "Generated at `c`.")
     assert section.startswith("## Sessions") and "\n### room\n" in section, "a section of docs/results.md"
+    assert section.splitlines()[2:5] == ["`python -m continual_nerf.bench.sessions`", "", "Generated at `c`."]
+    measured = {"room": {"split": {"one run": {"commit": "a"}}, "changed": {"joint": {"commit": "b"}}}}
+    assert run_commits(measured) == ["a", "b"]
 
 
 @pytest.mark.parametrize("scene", ["room", "street"])

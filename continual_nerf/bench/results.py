@@ -221,9 +221,9 @@ class Results:
     def sessions_lines(self) -> List[str]:
         bench = self.sessions()
         command_alone = f"{bench.command()} --output-dir outputs/bench-sessions"
-        lines = sessions.markdown(command_alone, sessions.results_tables(bench.measure()), level=2).splitlines()
-        # after the heading, its blank line and the command
-        return [*lines[:4], self.provenance([]), "", *lines[4:]]
+        measured = bench.measure()
+        provenance = self.provenance(sessions.run_commits(measured))
+        return sessions.markdown(command_alone, sessions.results_tables(measured), 2, provenance).splitlines()
 
     def provenance(self, commits: Iterable[str]) -> str:
         """Where and from what code a section's numbers come."""

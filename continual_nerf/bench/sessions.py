@@ -291,6 +291,11 @@ class SessionsBenchmark(DemoBenchmark):
         return words + ([f"--options={' '.join(self.options)}"] if self.options else [])
 
 
+def run_commits(results: Dict[str, Any]) -> List[str]:
+    """The commits the runs of `results` (scene -> experiment -> run -> measures) were trained at."""
+    return [measures["commit"] for scene in results.values() for runs in scene.values() for measures in runs.values()]
+
+
 def train_and_measure(run: Run, configs: Sequence[ContinualTrainerConfig]) -> None:
     """Train `run`'s sessions one after the other in this process (each session's images deleted before the next
     starts), then measure it and write its measures."""
@@ -489,9 +494,10 @@ def print_table(title: str, columns: Sequence[str], rows: List[List[str]]) -> No
     CONSOLE.print(table)
 
 
-def markdown(command: str, tables: Tables, level: int = 1) -> str:
-    """The tables under a heading of `level` (#: a page of its own, ##: a section of docs/results.md)."""
-    lines = [f"{'#' * level} {TITLE}", "", f"`{command}`", ""]
+def markdown(command: str, tables: Tables, level: int = 1, provenance: str = "") -> str:
+    """The tables under a heading of `level` (#: a page of its own, ##: a section of docs/results.md), with a line
+    saying where their numbers come from after the command, if given."""
+    lines = [f"{'#' * level} {TITLE}", "", f"`{command}`", "", *([provenance, ""] if provenance else [])]
     lines += [
         f"Targets: (a) two sessions within {TARGETS['split']} dB of one run; (b) the changed region within "
         f"{TARGETS['changed region']} dB of the joint bound on the new state, the unchanged parts losing at most "
