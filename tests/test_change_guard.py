@@ -1,5 +1,6 @@
 """The change guard: a replayed ray is skipped when an open-task frame sees the point it ends at in a cell whose colour
-differs from what the replay oracle renders there, unless that point is hidden behind the oracle's surface."""
+differs from what the replay oracle renders there, unless that point is hidden behind the oracle's surface; such a
+cell counts only where an earlier frame saw its surface in another colour."""
 
 from __future__ import annotations
 
@@ -10,7 +11,15 @@ import pytest
 import torch
 from helpers import demo_parser, tiny_config
 
-from continual_nerf.core.change_guard import OpenTaskView, cell_grid, open_task_view, pixels_of_cells
+from continual_nerf.core import change_guard
+from continual_nerf.core.change_guard import (
+    OpenTaskView,
+    Pinholes,
+    cell_grid,
+    open_task_view,
+    pixels_of_cells,
+    seen_otherwise,
+)
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
 from continual_nerf.errors import ContinualConfigError
@@ -55,7 +64,8 @@ def test_a_frames_cells_cover_it_with_at_most_the_maximum_number_of_cells():
     assert cell_grid(24, 18)[0] == 1, "a small frame: every pixel a cell"
 
 
-def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path):
+def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path, monkeypatch):
+    monkeypatch.setattr(change_guard, "seen_otherwise", lambda points, *_: torch.ones(len(points), dtype=torch.bool))
     config = tiny_config(tmp_path, demo_parser(num_frames=8), num_tasks=2).pipeline.datamanager
     manager = config.setup(device="cpu")
     assert isinstance(manager, ContinualDataManager)
@@ -72,7 +82,13 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
         rgb[indices[:, 2] < 8] = torch.tensor([1.0, 0.0, 1.0])
         return rgb, torch.full((len(indices),), 2.0)
 
-    view = open_task_view(1, dataset, lambda indices: indices, render, threshold=0.1, chunk=100)  # type: ignore[arg-type]
+    def rays_of(indices: torch.Tensor):
+        return SimpleNamespace(
+            origins=torch.zeros(len(indices), 3), directions=torch.zeros(len(indices), 3), at=indices
+        )
+
+    earlier = dataset.frames_of_task(0)
+    view = open_task_view(1, dataset, rays_of, lambda rays: render(rays.at), 0.1, 100, earlier)  # type: ignore
     frames = dataset.frames_of_task(1)
     assert view.task == 1 and len(view.centres) == len(frames) and len(view.changed) == len(frames) * 24 * 18
     columns = torch.arange(24).repeat(18 * len(frames))
@@ -84,6 +100,48 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
     assert torch.equal(view.distances, torch.full_like(view.distances, 2.0))
     changed_flat = start + torch.nonzero(torch.from_numpy(expected.reshape(-1))).view(-1)
     assert torch.equal(view.changed_pixels.sort().values, changed_flat), "one pixel per cell: the changed ones"
+
+
+def pinhole_rays(cameras: Pinholes, cells: torch.Tensor) -> SimpleNamespace:
+    """Rays through the centres of pixels `cells` ((N, 3) frame, y, x) of unrotated pinhole `cameras`."""
+    fx, fy, cx, cy = cameras.intrinsics[cells[:, 0]].unbind(-1)
+    x, y = cells[:, 2] + 0.5, cells[:, 1] + 0.5
+    directions = torch.stack([(x - cx) / fx, -(y - cy) / fy, -torch.ones_like(fx)], dim=-1)
+    return SimpleNamespace(
+        origins=cameras.centres[cells[:, 0]], directions=directions / directions.norm(dim=-1)[:, None]
+    )
+
+
+def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_surface_otherwise():
+    """Two earlier 10x10 cameras looking down -z at a wall at z = -5, from z = 0 and from z = 2; the oracle renders
+    the wall red on the left half from the nearer one, blue everywhere from the farther one."""
+    cameras = Pinholes(
+        frames=torch.tensor([0, 1]),
+        rotations=torch.eye(3).expand(2, 3, 3),
+        centres=torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]]),
+        intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]).expand(2, 4),
+        sizes=torch.tensor([[10.0, 10.0]]).expand(2, 2),
+    )
+    red, blue = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, 1.0])
+
+    def render(rays: SimpleNamespace):
+        distance = (rays.origins[:, 2] + 5) / -rays.directions[:, 2]
+        left = (rays.origins[:, 2] == 0) & (rays.directions[:, 0] < 0)
+        return torch.where(left[:, None], red, blue), distance
+
+    points = torch.tensor(
+        [
+            [-1.0, 0.0, -5.0],  # on the wall, red from the nearer camera: the open task's blue is a change
+            [-1.0, 0.0, -5.0],  # the same, but the open task sees it red as the earlier frame did
+            [1.0, 0.0, -5.0],  # the right half: blue from both
+            [-1.0, 0.0, -8.0],  # behind the wall: no earlier frame saw it
+            [-30.0, 0.0, -5.0],  # outside both images: new ground
+        ]
+    )
+    colours = torch.stack([blue, red, blue, blue, blue])
+    found = seen_otherwise(points, colours, cameras, lambda cells: pinhole_rays(cameras, cells), render, 0.1, 2)  # type: ignore
+    assert found.tolist() == [True, False, False, False, False]
+    assert len(seen_otherwise(points[:0], colours[:0], cameras, pinhole_rays, render, 0.1, 2)) == 0  # type: ignore
 
 
 def test_a_changed_cells_pixels_are_its_whole_block_inside_its_frame():

@@ -4,10 +4,13 @@ A later session may find the scene changed (an object moved, a wall repainted). 
 change, yet replay renders the earlier state from the frozen oracle and teaches it back. When a task opens, the oracle
 renders the open task's frames on a coarse grid of cells (colour and the distance to the surface), and a cell whose
 colour differs from the frame's pixel there by more than a threshold, and well more than the task's cells typically
-do, counts as changed. A replayed ray ends where the
-oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed cell and is not hidden there
-behind the surface the oracle renders in that cell, the frame observes that point differently than the earlier tasks
-did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
+do, is a candidate. It counts as changed only if the earlier frame nearest the surface the oracle renders there sees
+that surface, unhidden, in another colour than the open task's pixel: a candidate no earlier frame saw is new ground,
+and one an earlier frame saw as the open task does is a view the oracle renders badly; replay teaches neither
+anything the new images contradict (a later session of an unchanged scene then replays as one run would). A
+replayed ray ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed
+cell and is not hidden there behind the surface the oracle renders in that cell, the frame observes that point
+differently than the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
 in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
 their replay: what the new images do not show keeps what the earlier session taught.
 
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 from typing import Callable, Tuple
 
 import torch
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
@@ -84,21 +88,31 @@ class OpenTaskView:
         surface the oracle renders there."""
         if len(points) == 0 or len(self.centres) == 0:
             return torch.zeros(len(points), dtype=torch.bool, device=points.device)
-        relative = points[:, None, :] - self.centres[None]  # (N, F, 3)
-        local = torch.einsum("fji,nfj->nfi", self.rotations, relative)  # R^T (p - c)
-        depth = -local[..., 2]
-        in_front = depth > 1e-6
-        depth = depth.clamp_min(1e-6)
-        fx, fy, cx, cy = self.intrinsics.unbind(-1)
-        u = cx + fx * local[..., 0] / depth
-        v = cy - fy * local[..., 1] / depth
-        width, height = self.sizes.unbind(-1)
-        inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        u, v, inside = project(points, self.rotations, self.centres, self.intrinsics, self.sizes)
         column = (u.clamp(0, None).floor().long() // self.strides).clamp(max=self.grid_widths - 1)
         row = v.clamp(0, None).floor().long() // self.strides
         cell = (self.cell_offsets + row * self.grid_widths + column).clamp(0, len(self.changed) - 1)
-        seen = relative.norm(dim=-1) <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
+        distance = (points[:, None, :] - self.centres[None]).norm(dim=-1)
+        seen = distance <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
         return (inside & seen & self.changed[cell]).any(dim=1)
+
+
+def project(
+    points: Tensor, rotations: Tensor, centres: Tensor, intrinsics: Tensor, sizes: Tensor
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """Pixel coordinates u, v (N, F) of `points` (N, 3) in F pinhole cameras (camera-to-world `rotations` (F, 3, 3),
+    `centres` (F, 3), `intrinsics` (F, 4) fx, fy, cx, cy, `sizes` (F, 2)), and whether each lies in front of the
+    camera and inside its image."""
+    relative = points[:, None, :] - centres[None]  # (N, F, 3)
+    local = torch.einsum("fji,nfj->nfi", rotations, relative)  # R^T (p - c)
+    depth = -local[..., 2]
+    in_front = depth > 1e-6
+    depth = depth.clamp_min(1e-6)
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    u = cx + fx * local[..., 0] / depth
+    v = cy - fy * local[..., 1] / depth
+    width, height = sizes.unbind(-1)
+    return u, v, in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
 
 
 def cell_grid(width: int, height: int) -> Tuple[int, Tensor, Tensor]:
@@ -115,15 +129,17 @@ def open_task_view(
     render: Render,
     threshold: float,
     chunk: int,
+    earlier_frames: Tensor,
 ) -> OpenTaskView:
     """Render the open task's frames (its pixels loaded in `dataset`) on their cells with the oracle (`render`, of
-    the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there."""
-    frames = dataset.frames_of_task(task).tolist()
+    the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there; a cell counts as
+    changed only where one of `earlier_frames` saw its surface otherwise (`seen_otherwise`)."""
+    frames = dataset.frames_of_task(task)
     start, _ = dataset.open_task_pixel_range()
     assert dataset.task_pixels is not None, "the open task's pixels are loaded"
     cameras = dataset.cameras
     indices, strides, grid_widths, offsets = [], [], [], []
-    for frame in frames:
+    for frame in frames.tolist():
         width, height = int(cameras.width[frame]), int(cameras.height[frame])
         stride, rows, columns = cell_grid(width, height)
         y, x = torch.meshgrid(rows, columns, indexing="ij")
@@ -133,34 +149,132 @@ def open_task_view(
         grid_widths.append(len(columns))
     cells = torch.cat(indices)
     flat = dataset.pixel_offsets[cells[:, 0]] + cells[:, 1] * cameras.width.view(-1)[cells[:, 0]] + cells[:, 2]
-    pixels = dataset.task_pixels[flat - start]
-    colours, distances = [], []
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(SEED)
-        for begin in range(0, len(cells), chunk):
-            rgb, distance = render(rays_of(cells[begin : begin + chunk]))
-            colours.append(rgb.float().cpu())
-            distances.append(distance.float().view(-1).cpu())
-    difference = (torch.cat(colours) - pixels.float()).abs().mean(dim=-1)
+    pixels = dataset.task_pixels[flat - start].float()
+    colours, distances, points = render_pixels(cells, rays_of, render, chunk)
+    difference = (colours - pixels).abs().mean(dim=-1)
     changed = (difference > threshold) & (difference > CONTRAST * difference.median())
     if dataset.valid_pixels is not None:  # a masked-out pixel shows nothing the open task learns
         changed &= dataset.valid_pixels.contains(flat)
+    candidates = torch.nonzero(changed).view(-1)
+    earlier = Pinholes.of(cameras, earlier_frames)
+    confirmed = seen_otherwise(points[candidates], pixels[candidates], earlier, rays_of, render, threshold, chunk)
+    changed[candidates] = confirmed
     cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
     changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
-    poses = cameras.camera_to_worlds[frames].float()
+    own = Pinholes.of(cameras, frames)
     return OpenTaskView(
         task=task,
-        rotations=poses[:, :, :3],
-        centres=poses[:, :, 3],
-        intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),
-        sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
+        rotations=own.rotations,
+        centres=own.centres,
+        intrinsics=own.intrinsics,
+        sizes=own.sizes,
         strides=torch.tensor(strides),
         grid_widths=torch.tensor(grid_widths),
         cell_offsets=torch.tensor(offsets),
-        distances=torch.cat(distances),
+        distances=distances,
         changed=changed,
         changed_pixels=changed_pixels,
     )
+
+
+@dataclass
+class Pinholes:
+    """Frames as pinhole cameras (distortion ignored)."""
+
+    frames: Tensor
+    """(F,) their frame numbers."""
+    rotations: Tensor
+    """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
+    centres: Tensor
+    """(F, 3) camera centres."""
+    intrinsics: Tensor
+    """(F, 4) fx, fy, cx, cy."""
+    sizes: Tensor
+    """(F, 2) width and height."""
+
+    @staticmethod
+    def of(cameras: Cameras, frames: Tensor) -> Pinholes:
+        poses = cameras.camera_to_worlds[frames].float()
+        return Pinholes(
+            frames=frames,
+            rotations=poses[:, :, :3],
+            centres=poses[:, :, 3],
+            intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),
+            sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
+        )
+
+    def nearest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """For each of `points` (M, 3): the index of the nearest camera that has it inside its image (-1: none) and
+        the pixel (row, column) it falls in there."""
+        nearest, rows, columns = [], [], []
+        step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
+        for begin in range(0, len(points), step):
+            chunk = points[begin : begin + step]
+            u, v, inside = project(chunk, self.rotations, self.centres, self.intrinsics, self.sizes)
+            distance = (chunk[:, None] - self.centres[None]).norm(dim=-1).masked_fill(~inside, math.inf)
+            best = distance.argmin(dim=1)
+            each = torch.arange(len(chunk))
+            nearest.append(torch.where(inside[each, best], best, -1))
+            rows.append(v[each, best].floor().long())
+            columns.append(u[each, best].floor().long())
+        if not nearest:
+            empty = torch.zeros(0, dtype=torch.long)
+            return empty, empty, empty
+        return torch.cat(nearest), torch.cat(rows), torch.cat(columns)
+
+
+PROJECTIONS_AT_ONCE = 1 << 20
+"""Point-camera pairs projected at once while looking for the earlier frame nearest a changed cell's surface."""
+
+
+def seen_otherwise(
+    points: Tensor,
+    colours: Tensor,
+    earlier: Pinholes,
+    rays_of: Callable[[Tensor], RayBundle],
+    render: Render,
+    threshold: float,
+    chunk: int,
+) -> Tensor:
+    """(M,) whether the earlier frame nearest each of `points` (M, 3) (the surfaces the oracle renders in the open
+    task's candidate cells) that has it in view sees it, unhidden, in another colour than `colours` (M, 3) (the
+    open task's pixels there), as the oracle renders that frame. Where the oracle renders the open task's view badly
+    but no earlier frame saw the place (new ground) or saw it as the open task does (a viewpoint the oracle
+    generalises to poorly), replay teaches nothing the new images contradict: not a change."""
+    confirmed = torch.zeros(len(points), dtype=torch.bool)
+    nearest, rows, columns = earlier.nearest_view(points)
+    viewed = torch.nonzero(nearest >= 0).view(-1)
+    if len(viewed) == 0:
+        return confirmed
+    camera = nearest[viewed]
+    cells = torch.stack([earlier.frames[camera], rows[viewed], columns[viewed]], dim=-1)
+    rendered, distance, _ = render_pixels(cells, rays_of, render, chunk)
+    expected = (points[viewed] - earlier.centres[camera]).norm(dim=-1)
+    unhidden = (distance - expected).abs() <= VISIBILITY_TOLERANCE * expected
+    differs = (rendered - colours[viewed]).abs().mean(dim=-1) > threshold
+    confirmed[viewed] = unhidden & differs
+    return confirmed
+
+
+def render_pixels(
+    cells: Tensor, rays_of: Callable[[Tensor], RayBundle], render: Render, chunk: int
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """The oracle's colour (N, 3), distance to its surface (N,) and that surface point (N, 3) through the pixels
+    `cells` ((N, 3) frame, y, x), its jittered samples drawn with the guard's own SEED."""
+    colours, distances, points = [], [], []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(SEED)
+        for begin in range(0, len(cells), chunk):
+            rays = rays_of(cells[begin : begin + chunk])
+            rgb, distance = render(rays)
+            distance = distance.float().view(-1).cpu()
+            origins, directions = rays.origins.float().cpu(), rays.directions.float().cpu()
+            colours.append(rgb.float().cpu())
+            distances.append(distance)
+            points.append(origins + directions * distance[:, None])
+    if not colours:
+        return torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)
+    return torch.cat(colours), torch.cat(distances), torch.cat(points)
 
 
 def pixels_of_cells(dataset: ContinualDataset, cells: Tensor, strides: Tensor) -> Tensor:

@@ -331,6 +331,13 @@ class ContinualPipeline(VanillaPipeline):
         datamanager = self.datamanager
         return (datamanager.train_dataset.task_of_frame[frames.cpu()] < datamanager.earlier_tasks).to(frames.device)
 
+    def _guarded_frames(self, task: int) -> torch.Tensor:
+        """The frames of tasks before `task` whose replay the change guard may skip: the views a change is measured
+        against."""
+        task_of_frame = self.datamanager.train_dataset.task_of_frame
+        frames = torch.arange(len(task_of_frame))
+        return frames[(task_of_frame < task) & self._of_earlier_session(frames)]
+
     @property
     def guards_replay(self) -> bool:
         """Whether the change guard checks the open task's replayed rays (--pipeline.change-guard): it places their
@@ -360,6 +367,7 @@ class ContinualPipeline(VanillaPipeline):
                 self._render_with_distance,
                 self.config.change_threshold,
                 datamanager.config.train_num_rays_per_batch,
+                self._guarded_frames(task),
             )
             self.guard_count = GuardCount()
         return self.open_task_view
