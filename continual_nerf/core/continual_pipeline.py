@@ -112,7 +112,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     (the paper)."""
     change_threshold: float = 0.1
     """Mean absolute colour difference (0-1) between an open-task frame and the replay oracle's render of it above
-    which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change."""
+    which (and above 3x the task's median difference) the change guard counts the frame's pixel as showing a change,
+    if the earlier frame nearest its surface also saw that surface differ from the pixel by as much."""
     change_emphasis: float = 0.25
     """Share of the open task's rays the change guard draws from the pixels it found changed, while it runs (the
     new images' change learned in the task's budget); 0: the open task's rays uniform over its pixels."""
