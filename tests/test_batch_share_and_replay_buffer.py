@@ -53,14 +53,27 @@ def test_the_emphasised_share_of_the_open_tasks_rays_is_drawn_from_the_emphasise
     pipeline.open_next_task()
     datamanager.open_if_released()
     start, end = datamanager.train_dataset.open_task_pixel_range()
-    emphasised = torch.tensor([start + 5, end - 1])
+    emphasised = torch.arange(start, end, 8)  # an eighth of the task's pixels: up to all its rays (8x its share)
     datamanager.emphasise(1, emphasised, 0.25)
     flat = datamanager.sample_pixels(1024)
     open_part, replayed = flat[:512], flat[512:]
     assert bool(torch.isin(open_part[-128:], emphasised).all()), "a quarter of the open task's 512 rays"
     assert bool(((open_part >= start) & (open_part < end)).all()) and bool((replayed < start).all())
     datamanager.emphasise(0, emphasised, 0.25)
-    assert int(torch.isin(datamanager.sample_pixels(1024), emphasised).sum()) < 8, "a closed task's emphasis: none"
+    assert int(torch.isin(datamanager.sample_pixels(1024), emphasised).sum()) < 128, "a closed task's emphasis: none"
+
+
+def test_a_few_emphasised_pixels_take_at_most_8x_their_share_of_the_open_tasks_rays(run_dir):
+    trainer = set_up(run_dir, current_task_fraction=0.5)
+    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
+    pipeline.open_next_task()
+    datamanager.open_if_released()
+    start, end = datamanager.train_dataset.open_task_pixel_range()
+    emphasised = torch.arange(start, end, 64)  # 1/64 of the task's pixels: an eighth of its rays, not a quarter
+    datamanager.emphasise(1, emphasised, 0.25)
+    open_part = datamanager.sample_pixels(1024)[:512]
+    assert bool(torch.isin(open_part[-round(512 * 8 * len(emphasised) / (end - start)) :], emphasised).all())
+    assert int(torch.isin(open_part, emphasised).sum()) < 128, "uniform drawing adds about 8 more, not 64"
 
 
 def test_uniform_sampling_is_the_papers_rule(run_dir):

@@ -51,6 +51,11 @@ from continual_nerf.core.task_split import TaskSplit, nearest_train_frames, spli
 from continual_nerf.errors import ContinualConfigError, DatasetError, plural
 from continual_nerf.validated_config import ValidatedConfig
 
+MAX_EMPHASIS_RATE = 8.0
+"""The change guard's emphasis draws a changed pixel at most this many times as often as drawing uniformly over the
+open task's pixels would: a few cells found changed (where nothing changed, the oracle's errors the guard lets through)
+take few of the open task's rays."""
+
 
 @dataclass
 class ContinualDataManagerConfig(ValidatedConfig, VanillaDataManagerConfig):
@@ -479,6 +484,7 @@ class ContinualDataManager(VanillaDataManager):
         task, pixels, share = self.emphasis
         if task != self.data_task or len(pixels) == 0:
             return draw(start, end, num)
+        share = min(share, MAX_EMPHASIS_RATE * len(pixels) / (end - start))
         num_emphasised = round(num * share)
         chosen = pixels[torch.randint(len(pixels), (num_emphasised,))]
         return torch.cat([draw(start, end, num - num_emphasised), chosen])

@@ -116,7 +116,8 @@ class ContinualPipelineConfig(ValidatedConfig, VanillaPipelineConfig):
     if the earlier frame nearest its surface also saw that surface differ from the pixel by as much."""
     change_emphasis: float = 0.25
     """Share of the open task's rays the change guard draws from the pixels it found changed, while it runs (the
-    new images' change learned in the task's budget); 0: the open task's rays uniform over its pixels."""
+    new images' change learned in the task's budget), at most 8x their share of the task's pixels; 0: the open task's
+    rays uniform over its pixels."""
 
     def validate(self) -> None:
         super().validate()
