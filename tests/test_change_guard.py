@@ -13,14 +13,12 @@ from helpers import demo_parser, tiny_config
 
 from continual_nerf.core import change_guard
 from continual_nerf.core.change_guard import (
-    Candidates,
     OpenTaskView,
     Pinholes,
     cell_grid,
     open_task_view,
     pixels_of_cells,
     seen_otherwise,
-    without_specks,
 )
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_pipeline import ContinualPipelineConfig
@@ -67,10 +65,7 @@ def test_a_frames_cells_cover_it_with_at_most_the_maximum_number_of_cells():
 
 
 def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path, monkeypatch):
-    """The candidates (the earlier frames' confirmation and the specks' removal tested on their own below)."""
-    everything = lambda candidates, *_: torch.ones(len(candidates.points), dtype=torch.bool)  # noqa: E731
-    monkeypatch.setattr(change_guard, "seen_otherwise", everything)
-    monkeypatch.setattr(change_guard, "without_specks", lambda changed, *_: changed)
+    monkeypatch.setattr(change_guard, "seen_otherwise", lambda points, *_: torch.ones(len(points), dtype=torch.bool))
     config = tiny_config(tmp_path, demo_parser(num_frames=8), num_tasks=2).pipeline.datamanager
     manager = config.setup(device="cpu")
     assert isinstance(manager, ContinualDataManager)
@@ -117,9 +112,9 @@ def pinhole_rays(cameras: Pinholes, cells: torch.Tensor) -> SimpleNamespace:
     )
 
 
-def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_surface_alike_and_otherwise():
+def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_surface_otherwise():
     """Two earlier 10x10 cameras looking down -z at a wall at z = -5, from z = 0 and from z = 2; the oracle renders
-    the wall red left of x = 0 and blue right of it from the nearer one, blue everywhere from the farther one."""
+    the wall red on the left half from the nearer one, blue everywhere from the farther one."""
     cameras = Pinholes(
         frames=torch.tensor([0, 1]),
         rotations=torch.eye(3).expand(2, 3, 3),
@@ -127,48 +122,26 @@ def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_su
         intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]).expand(2, 4),
         sizes=torch.tensor([[10.0, 10.0]]).expand(2, 2),
     )
-    red, green, blue = torch.eye(3)
+    red, blue = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, 1.0])
 
     def render(rays: SimpleNamespace):
         distance = (rays.origins[:, 2] + 5) / -rays.directions[:, 2]
-        x = rays.origins[:, 0] + rays.directions[:, 0] * distance
-        return torch.where(((x < 0) & (rays.origins[:, 2] == 0))[:, None], red, blue), distance
+        left = (rays.origins[:, 2] == 0) & (rays.directions[:, 0] < 0)
+        return torch.where(left[:, None], red, blue), distance
 
     points = torch.tensor(
         [
-            [-1.0, 0.0, -5.0],  # red from the nearer frame as in the open task's cell: its blue pixel is a change
+            [-1.0, 0.0, -5.0],  # on the wall, red from the nearer camera: the open task's blue is a change
             [-1.0, 0.0, -5.0],  # the same, but the open task sees it red as the earlier frame did
-            [-1.0, 0.0, -5.0],  # the same, but the oracle renders the open task's cell green: a place learned poorly
-            [-3.0, 0.0, -5.0],  # inside the farther frame's image only: blue there, so the red pixel is a change
+            [1.0, 0.0, -5.0],  # the right half: blue from both
             [-1.0, 0.0, -8.0],  # behind the wall: no earlier frame saw it
             [-30.0, 0.0, -5.0],  # outside both images: new ground
         ]
     )
-    pixels = torch.stack([blue, red, blue, red, blue, blue])
-    colours = torch.stack([red, red, green, blue, red, red])
-    arguments = (cameras, lambda cells: pinhole_rays(cameras, cells), render, 0.1, 4)
-    found = seen_otherwise(Candidates(points, pixels, colours), *arguments)  # type: ignore[arg-type]
-    assert found.tolist() == [True, False, False, True, False, False]
-    nothing = Candidates(points[:0], pixels[:0], colours[:0])
-    assert len(seen_otherwise(nothing, *arguments)) == 0  # type: ignore[arg-type]
-
-
-def test_changed_cells_without_a_2x2_block_of_changed_neighbours_are_specks():
-    first = torch.tensor(
-        [
-            [1, 0, 0, 0, 1],  # a speck, and a one-cell-wide line down the right
-            [0, 0, 0, 0, 1],
-            [0, 1, 1, 0, 1],  # a 2x2 block
-            [0, 1, 1, 0, 1],
-        ],
-        dtype=torch.bool,
-    )
-    second = torch.tensor([[1, 1, 1], [1, 1, 1]], dtype=torch.bool)  # a frame of its own grid, all changed
-    changed = torch.cat([first.view(-1), second.view(-1)])
-    kept = without_specks(changed, [0, 20], [5, 3])
-    block = torch.zeros_like(first)
-    block[2:, 1:3] = True
-    assert torch.equal(kept, torch.cat([block.view(-1), second.view(-1)]))
+    colours = torch.stack([blue, red, blue, blue, blue])
+    found = seen_otherwise(points, colours, cameras, lambda cells: pinhole_rays(cameras, cells), render, 0.1, 2)  # type: ignore
+    assert found.tolist() == [True, False, False, False, False]
+    assert len(seen_otherwise(points[:0], colours[:0], cameras, pinhole_rays, render, 0.1, 2)) == 0  # type: ignore
 
 
 def test_a_changed_cells_pixels_are_its_whole_block_inside_its_frame():

@@ -5,18 +5,14 @@ change, yet replay renders the earlier state from the frozen oracle and teaches 
 renders the open task's frames on a coarse grid of cells (colour and the distance to the surface), and a cell whose
 colour differs from the frame's pixel there by more than a threshold, and well more than the task's cells typically
 do, is a candidate. It counts as changed only if the earlier frame nearest the surface the oracle renders there sees
-that surface unhidden, in the colour the oracle renders in the cell and in another colour than the open task's pixel:
-a candidate no earlier frame saw is new ground, one the oracle renders otherwise from the earlier view is a place
-whose geometry it learned poorly (each view's colour right, the surface misplaced), one an earlier frame saw as the
-open task does is a view the oracle renders badly; replay teaches none of them anything the new images contradict (a
-later session of an unchanged scene replays almost as one run would). A changed cell also needs changed neighbours (a
-2x2 block of them): a change covers a region, the oracle's own errors (texture rendered blurred, an edge misplaced)
-are specks. A replayed ray ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls
-in a changed cell and is not hidden there behind the surface the oracle renders in that cell, the frame observes that
-point differently than the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a
-point an open-task frame sees changed in front of the oracle's surface (an object moved into what was empty space).
-Points no open-task frame sees keep their replay: what the new images do not show keeps what the earlier session
-taught.
+that surface, unhidden, in another colour than the open task's pixel: a candidate no earlier frame saw is new ground,
+and one an earlier frame saw as the open task does is a view the oracle renders badly; replay teaches neither
+anything the new images contradict (a later session of an unchanged scene then replays as one run would). A
+replayed ray ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed
+cell and is not hidden there behind the surface the oracle renders in that cell, the frame observes that point
+differently than the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
+in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
+their replay: what the new images do not show keeps what the earlier session taught.
 
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
@@ -25,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, List, Tuple
+from typing import Callable, Tuple
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -137,7 +133,7 @@ def open_task_view(
 ) -> OpenTaskView:
     """Render the open task's frames (its pixels loaded in `dataset`) on their cells with the oracle (`render`, of
     the rays `rays_of` gives for (frame, y, x) indices) and compare them with the pixels there; a cell counts as
-    changed only where `earlier_frames` saw its surface otherwise (`seen_otherwise`)."""
+    changed only where one of `earlier_frames` saw its surface otherwise (`seen_otherwise`)."""
     frames = dataset.frames_of_task(task)
     start, _ = dataset.open_task_pixel_range()
     assert dataset.task_pixels is not None, "the open task's pixels are loaded"
@@ -161,10 +157,8 @@ def open_task_view(
         changed &= dataset.valid_pixels.contains(flat)
     candidates = torch.nonzero(changed).view(-1)
     earlier = Pinholes.of(cameras, earlier_frames)
-    seen = Candidates(points[candidates], pixels[candidates], colours[candidates])
-    confirmed = seen_otherwise(seen, earlier, rays_of, render, threshold, chunk)
+    confirmed = seen_otherwise(points[candidates], pixels[candidates], earlier, rays_of, render, threshold, chunk)
     changed[candidates] = confirmed
-    changed = without_specks(changed, offsets, grid_widths)
     cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
     changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
     own = Pinholes.of(cameras, frames)
@@ -233,33 +227,20 @@ PROJECTIONS_AT_ONCE = 1 << 20
 """Point-camera pairs projected at once while looking for the earlier frame nearest a changed cell's surface."""
 
 
-@dataclass
-class Candidates:
-    """The open task's cells whose pixel differs from what the oracle renders there."""
-
-    points: Tensor
-    """(M, 3) the surface the oracle renders in each."""
-    pixels: Tensor
-    """(M, 3) the open task's pixel colours."""
-    colours: Tensor
-    """(M, 3) the colours the oracle renders."""
-
-
 def seen_otherwise(
-    candidates: Candidates,
+    points: Tensor,
+    colours: Tensor,
     earlier: Pinholes,
     rays_of: Callable[[Tensor], RayBundle],
     render: Render,
     threshold: float,
     chunk: int,
 ) -> Tensor:
-    """(M,) whether the earlier frame nearest each candidate's surface that has it in its image sees it unhidden, in
-    the colour the oracle renders in the open task's cell and in another colour than the open task's pixel there, as
-    the oracle renders that frame. Where no earlier frame saw the place (new ground), the oracle renders it otherwise
-    from the earlier view (a place whose geometry it learned poorly: each view's colour right, the surface misplaced)
-    or the earlier frame saw it as the open task does, replay teaches nothing the new images contradict: not a
-    change."""
-    points, pixels, colours = candidates.points, candidates.pixels, candidates.colours
+    """(M,) whether the earlier frame nearest each of `points` (M, 3) (the surfaces the oracle renders in the open
+    task's candidate cells) that has it in view sees it, unhidden, in another colour than `colours` (M, 3) (the
+    open task's pixels there), as the oracle renders that frame. Where the oracle renders the open task's view badly
+    but no earlier frame saw the place (new ground) or saw it as the open task does (a viewpoint the oracle
+    generalises to poorly), replay teaches nothing the new images contradict: not a change."""
     confirmed = torch.zeros(len(points), dtype=torch.bool)
     nearest, rows, columns = earlier.nearest_view(points)
     viewed = torch.nonzero(nearest >= 0).view(-1)
@@ -270,9 +251,8 @@ def seen_otherwise(
     rendered, distance, _ = render_pixels(cells, rays_of, render, chunk)
     expected = (points[viewed] - earlier.centres[camera]).norm(dim=-1)
     unhidden = (distance - expected).abs() <= VISIBILITY_TOLERANCE * expected
-    differs = (rendered - pixels[viewed]).abs().mean(dim=-1) > threshold
-    consistent = (rendered - colours[viewed]).abs().mean(dim=-1) <= threshold
-    confirmed[viewed] = unhidden & differs & consistent
+    differs = (rendered - colours[viewed]).abs().mean(dim=-1) > threshold
+    confirmed[viewed] = unhidden & differs
     return confirmed
 
 
@@ -295,19 +275,6 @@ def render_pixels(
     if not colours:
         return torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)
     return torch.cat(colours), torch.cat(distances), torch.cat(points)
-
-
-def without_specks(changed: Tensor, offsets: List[int], grid_widths: List[int]) -> Tensor:
-    """`changed` (C,) with what no 2x2 block of changed cells covers in its frame's grid (frames' cells from
-    `offsets`, `grid_widths` a row) removed: a moved object or a repainted wall changes regions of cells, while the
-    oracle's own errors (texture it renders blurred, an edge it misplaces) change cells here and there."""
-    kept = torch.zeros_like(changed)
-    for begin, end, width in zip(offsets, [*offsets[1:], len(changed)], grid_widths):
-        grid = changed[begin:end].view(1, 1, -1, width).float()
-        blocks = 1 - torch.nn.functional.max_pool2d(1 - grid, 2, stride=1)  # 1 where a 2x2 block is all changed
-        covered = torch.nn.functional.max_pool2d(torch.nn.functional.pad(blocks, (1, 1, 1, 1)), 2, stride=1)
-        kept[begin:end] = covered.view(-1) > 0
-    return kept
 
 
 def pixels_of_cells(dataset: ContinualDataset, cells: Tensor, strides: Tensor) -> Tensor:
