@@ -6,13 +6,13 @@ renders the open task's frames on a coarse grid of cells (colour and the distanc
 colour differs from the frame's pixel there by more than a threshold, and well more than the task's cells typically
 do, is a candidate. It counts as changed only if the earlier frame nearest the surface the oracle renders there sees
 that surface, unhidden, in another colour than the open task's pixel: a candidate no earlier frame saw is new ground,
-and one an earlier frame saw as the open task does is a view the oracle renders badly; replay teaches neither
-anything the new images contradict (a later session of an unchanged scene then replays as one run would). A
-replayed ray ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed
-cell and is not hidden there behind the surface the oracle renders in that cell, the frame observes that point
-differently than the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame sees changed
-in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame sees keep
-their replay: what the new images do not show keeps what the earlier session taught.
+and one an earlier frame saw as the open task does is a view the oracle renders badly; replay teaches neither anything
+the new images contradict (a later session of an unchanged scene then keeps nearly all its replay). A replayed ray
+ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed cell and is
+not hidden there behind the surface the oracle renders in that cell, the frame observes that point differently than
+the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame
+sees changed in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame
+sees keep their replay: what the new images do not show keeps what the earlier session taught.
 
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
