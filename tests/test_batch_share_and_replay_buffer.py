@@ -47,12 +47,17 @@ def test_the_batch_holds_the_configured_share_of_open_task_rays(run_dir, share):
         assert set(datamanager.train_dataset.task_of_frame[replayed_frames].tolist()) <= set(range(task))
 
 
-def test_the_emphasised_share_of_the_open_tasks_rays_is_drawn_from_the_emphasised_pixels(run_dir):
+def second_task_open(run_dir):
+    """The datamanager of a run whose second task is open, half of each batch its rays, and its pixel range."""
     trainer = set_up(run_dir, current_task_fraction=0.5)
-    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
-    pipeline.open_next_task()
+    datamanager = trainer.pipeline.datamanager
+    trainer.pipeline.open_next_task()
     datamanager.open_if_released()
-    start, end = datamanager.train_dataset.open_task_pixel_range()
+    return (datamanager, *datamanager.train_dataset.open_task_pixel_range())
+
+
+def test_the_emphasised_share_of_the_open_tasks_rays_is_drawn_from_the_emphasised_pixels(run_dir):
+    datamanager, start, end = second_task_open(run_dir)
     emphasised = torch.arange(start, end, 8)  # an eighth of the task's pixels: up to all its rays (8x its share)
     datamanager.emphasise(1, emphasised, 0.25)
     flat = datamanager.sample_pixels(1024)
@@ -64,11 +69,7 @@ def test_the_emphasised_share_of_the_open_tasks_rays_is_drawn_from_the_emphasise
 
 
 def test_a_few_emphasised_pixels_take_at_most_8x_their_share_of_the_open_tasks_rays(run_dir):
-    trainer = set_up(run_dir, current_task_fraction=0.5)
-    pipeline, datamanager = trainer.pipeline, trainer.pipeline.datamanager
-    pipeline.open_next_task()
-    datamanager.open_if_released()
-    start, end = datamanager.train_dataset.open_task_pixel_range()
+    datamanager, start, end = second_task_open(run_dir)
     emphasised = torch.arange(start, end, 64)  # 1/64 of the task's pixels: an eighth of its rays, not a quarter
     datamanager.emphasise(1, emphasised, 0.25)
     open_part = datamanager.sample_pixels(1024)[:512]
