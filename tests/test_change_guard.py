@@ -32,10 +32,13 @@ def one_camera_view() -> OpenTaskView:
     changed[:, :5] = True
     return OpenTaskView(
         task=0,
-        rotations=torch.eye(3)[None],
-        centres=torch.zeros(1, 3),
-        intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]),
-        sizes=torch.tensor([[10.0, 10.0]]),
+        cameras=Pinholes(
+            frames=torch.tensor([0]),
+            rotations=torch.eye(3)[None],
+            centres=torch.zeros(1, 3),
+            intrinsics=torch.tensor([[10.0, 10.0, 5.0, 5.0]]),
+            sizes=torch.tensor([[10.0, 10.0]]),
+        ),
         strides=torch.tensor([1]),
         grid_widths=torch.tensor([10]),
         cell_offsets=torch.tensor([0]),
@@ -90,7 +93,7 @@ def test_cells_whose_pixels_differ_from_the_render_are_the_changed_ones(tmp_path
     earlier = dataset.frames_of_task(0)
     view = open_task_view(1, dataset, rays_of, lambda rays: render(rays.at), 0.1, 100, earlier)  # type: ignore
     frames = dataset.frames_of_task(1)
-    assert view.task == 1 and len(view.centres) == len(frames) and len(view.changed) == len(frames) * 24 * 18
+    assert view.task == 1 and len(view.cameras.centres) == len(frames) and len(view.changed) == len(frames) * 24 * 18
     columns = torch.arange(24).repeat(18 * len(frames))
     difference = (pixels.view(len(frames), 18, 24, 3)[..., :8, :] - torch.tensor([1.0, 0.0, 1.0])).abs().mean(-1)
     expected = np.zeros((len(frames), 18, 24), dtype=bool)

@@ -44,8 +44,58 @@ SEED = 0
 """The seed the oracle's jittered samples are drawn with while it renders the cells (training's generators untouched):
 a run resumed mid-task finds the same cells changed."""
 
+PROJECTIONS_AT_ONCE = 1 << 20
+"""Point-camera pairs projected at once while looking for the earlier frame nearest a changed cell's surface."""
+
+
 Render = Callable[[RayBundle], Tuple[Tensor, Tensor]]
 """Colour (N, 3) and distance along the ray to the surface (N,) the oracle renders for rays of training frames."""
+
+
+@dataclass
+class Pinholes:
+    """Frames as pinhole cameras (distortion ignored)."""
+
+    frames: Tensor
+    """(F,) their frame numbers."""
+    rotations: Tensor
+    """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
+    centres: Tensor
+    """(F, 3) camera centres."""
+    intrinsics: Tensor
+    """(F, 4) fx, fy, cx, cy."""
+    sizes: Tensor
+    """(F, 2) width and height."""
+
+    @staticmethod
+    def of(cameras: Cameras, frames: Tensor) -> Pinholes:
+        poses = cameras.camera_to_worlds[frames].float()
+        return Pinholes(
+            frames=frames,
+            rotations=poses[:, :, :3],
+            centres=poses[:, :, 3],
+            intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),
+            sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
+        )
+
+    def nearest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """For each of `points` (M, 3): the index of the nearest camera that has it inside its image (-1: none) and
+        the pixel (row, column) it falls in there."""
+        nearest, rows, columns = [], [], []
+        step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
+        for begin in range(0, len(points), step):
+            chunk = points[begin : begin + step]
+            u, v, inside = project(chunk, self.rotations, self.centres, self.intrinsics, self.sizes)
+            distance = (chunk[:, None] - self.centres[None]).norm(dim=-1).masked_fill(~inside, math.inf)
+            best = distance.argmin(dim=1)
+            each = torch.arange(len(chunk))
+            nearest.append(torch.where(inside[each, best], best, -1))
+            rows.append(v[each, best].floor().long())
+            columns.append(u[each, best].floor().long())
+        if not nearest:
+            empty = torch.zeros(0, dtype=torch.long)
+            return empty, empty, empty
+        return torch.cat(nearest), torch.cat(rows), torch.cat(columns)
 
 
 @dataclass
@@ -54,14 +104,8 @@ class OpenTaskView:
     (the distance to its surface) and which cells show something else than the oracle renders."""
 
     task: int
-    rotations: Tensor
-    """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
-    centres: Tensor
-    """(F, 3) camera centres."""
-    intrinsics: Tensor
-    """(F, 4) fx, fy, cx, cy of the loaded images."""
-    sizes: Tensor
-    """(F, 2) width and height of the loaded images."""
+    cameras: Pinholes
+    """The open task's frames (of the loaded images)."""
     strides: Tensor
     """(F,) pixels per cell side."""
     grid_widths: Tensor
@@ -86,13 +130,14 @@ class OpenTaskView:
     def observed_changed(self, points: Tensor) -> Tensor:
         """(N,) whether an open-task frame sees each of `points` (N, 3) in a changed cell, not hidden behind the
         surface the oracle renders there."""
-        if len(points) == 0 or len(self.centres) == 0:
+        cameras = self.cameras
+        if len(points) == 0 or len(cameras.centres) == 0:
             return torch.zeros(len(points), dtype=torch.bool, device=points.device)
-        u, v, inside = project(points, self.rotations, self.centres, self.intrinsics, self.sizes)
+        u, v, inside = project(points, cameras.rotations, cameras.centres, cameras.intrinsics, cameras.sizes)
         column = (u.clamp(0, None).floor().long() // self.strides).clamp(max=self.grid_widths - 1)
         row = v.clamp(0, None).floor().long() // self.strides
         cell = (self.cell_offsets + row * self.grid_widths + column).clamp(0, len(self.changed) - 1)
-        distance = (points[:, None, :] - self.centres[None]).norm(dim=-1)
+        distance = (points[:, None, :] - cameras.centres[None]).norm(dim=-1)
         seen = distance <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
         return (inside & seen & self.changed[cell]).any(dim=1)
 
@@ -161,13 +206,9 @@ def open_task_view(
     changed[candidates] = confirmed
     cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
     changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
-    own = Pinholes.of(cameras, frames)
     return OpenTaskView(
         task=task,
-        rotations=own.rotations,
-        centres=own.centres,
-        intrinsics=own.intrinsics,
-        sizes=own.sizes,
+        cameras=Pinholes.of(cameras, frames),
         strides=torch.tensor(strides),
         grid_widths=torch.tensor(grid_widths),
         cell_offsets=torch.tensor(offsets),
@@ -175,56 +216,6 @@ def open_task_view(
         changed=changed,
         changed_pixels=changed_pixels,
     )
-
-
-@dataclass
-class Pinholes:
-    """Frames as pinhole cameras (distortion ignored)."""
-
-    frames: Tensor
-    """(F,) their frame numbers."""
-    rotations: Tensor
-    """(F, 3, 3) camera-to-world rotations (OpenGL: the camera looks along -z)."""
-    centres: Tensor
-    """(F, 3) camera centres."""
-    intrinsics: Tensor
-    """(F, 4) fx, fy, cx, cy."""
-    sizes: Tensor
-    """(F, 2) width and height."""
-
-    @staticmethod
-    def of(cameras: Cameras, frames: Tensor) -> Pinholes:
-        poses = cameras.camera_to_worlds[frames].float()
-        return Pinholes(
-            frames=frames,
-            rotations=poses[:, :, :3],
-            centres=poses[:, :, 3],
-            intrinsics=torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], dim=-1)[frames].float(),
-            sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
-        )
-
-    def nearest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """For each of `points` (M, 3): the index of the nearest camera that has it inside its image (-1: none) and
-        the pixel (row, column) it falls in there."""
-        nearest, rows, columns = [], [], []
-        step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
-        for begin in range(0, len(points), step):
-            chunk = points[begin : begin + step]
-            u, v, inside = project(chunk, self.rotations, self.centres, self.intrinsics, self.sizes)
-            distance = (chunk[:, None] - self.centres[None]).norm(dim=-1).masked_fill(~inside, math.inf)
-            best = distance.argmin(dim=1)
-            each = torch.arange(len(chunk))
-            nearest.append(torch.where(inside[each, best], best, -1))
-            rows.append(v[each, best].floor().long())
-            columns.append(u[each, best].floor().long())
-        if not nearest:
-            empty = torch.zeros(0, dtype=torch.long)
-            return empty, empty, empty
-        return torch.cat(nearest), torch.cat(rows), torch.cat(columns)
-
-
-PROJECTIONS_AT_ONCE = 1 << 20
-"""Point-camera pairs projected at once while looking for the earlier frame nearest a changed cell's surface."""
 
 
 def seen_otherwise(
