@@ -78,6 +78,21 @@ class Pinholes:
             sizes=torch.cat([cameras.width, cameras.height], dim=-1)[frames].float(),
         )
 
+    def project(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pixel coordinates u, v (N, F) of `points` (N, 3) in the F cameras, whether each lies in front of the
+        camera and inside its image, and its distance from the camera centre."""
+        relative = points[:, None, :] - self.centres[None]  # (N, F, 3)
+        local = torch.einsum("fji,nfj->nfi", self.rotations, relative)  # R^T (p - c)
+        depth = -local[..., 2]
+        in_front = depth > 1e-6
+        depth = depth.clamp_min(1e-6)
+        fx, fy, cx, cy = self.intrinsics.unbind(-1)
+        u = cx + fx * local[..., 0] / depth
+        v = cy - fy * local[..., 1] / depth
+        width, height = self.sizes.unbind(-1)
+        inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        return u, v, inside, relative.norm(dim=-1)
+
     def nearest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """For each of `points` (M, 3): the index of the nearest camera that has it inside its image (-1: none) and
         the pixel (row, column) it falls in there."""
@@ -85,8 +100,8 @@ class Pinholes:
         step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
         for begin in range(0, len(points), step):
             chunk = points[begin : begin + step]
-            u, v, inside = project(chunk, self.rotations, self.centres, self.intrinsics, self.sizes)
-            distance = (chunk[:, None] - self.centres[None]).norm(dim=-1).masked_fill(~inside, math.inf)
+            u, v, inside, distance = self.project(chunk)
+            distance = distance.masked_fill(~inside, math.inf)
             best = distance.argmin(dim=1)
             each = torch.arange(len(chunk))
             nearest.append(torch.where(inside[each, best], best, -1))
@@ -130,34 +145,14 @@ class OpenTaskView:
     def observed_changed(self, points: Tensor) -> Tensor:
         """(N,) whether an open-task frame sees each of `points` (N, 3) in a changed cell, not hidden behind the
         surface the oracle renders there."""
-        cameras = self.cameras
-        if len(points) == 0 or len(cameras.centres) == 0:
+        if len(points) == 0 or len(self.cameras.centres) == 0:
             return torch.zeros(len(points), dtype=torch.bool, device=points.device)
-        u, v, inside = project(points, cameras.rotations, cameras.centres, cameras.intrinsics, cameras.sizes)
+        u, v, inside, distance = self.cameras.project(points)
         column = (u.clamp(0, None).floor().long() // self.strides).clamp(max=self.grid_widths - 1)
         row = v.clamp(0, None).floor().long() // self.strides
         cell = (self.cell_offsets + row * self.grid_widths + column).clamp(0, len(self.changed) - 1)
-        distance = (points[:, None, :] - cameras.centres[None]).norm(dim=-1)
         seen = distance <= self.distances[cell] * (1 + VISIBILITY_TOLERANCE)
         return (inside & seen & self.changed[cell]).any(dim=1)
-
-
-def project(
-    points: Tensor, rotations: Tensor, centres: Tensor, intrinsics: Tensor, sizes: Tensor
-) -> Tuple[Tensor, Tensor, Tensor]:
-    """Pixel coordinates u, v (N, F) of `points` (N, 3) in F pinhole cameras (camera-to-world `rotations` (F, 3, 3),
-    `centres` (F, 3), `intrinsics` (F, 4) fx, fy, cx, cy, `sizes` (F, 2)), and whether each lies in front of the
-    camera and inside its image."""
-    relative = points[:, None, :] - centres[None]  # (N, F, 3)
-    local = torch.einsum("fji,nfj->nfi", rotations, relative)  # R^T (p - c)
-    depth = -local[..., 2]
-    in_front = depth > 1e-6
-    depth = depth.clamp_min(1e-6)
-    fx, fy, cx, cy = intrinsics.unbind(-1)
-    u = cx + fx * local[..., 0] / depth
-    v = cy - fy * local[..., 1] / depth
-    width, height = sizes.unbind(-1)
-    return u, v, in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
 
 
 def cell_grid(width: int, height: int) -> Tuple[int, Tensor, Tensor]:
