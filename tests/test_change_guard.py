@@ -115,9 +115,9 @@ def pinhole_rays(cameras: Pinholes, cells: torch.Tensor) -> SimpleNamespace:
     )
 
 
-def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_surface_otherwise():
-    """Two earlier 10x10 cameras looking down -z at a wall at z = -5, from z = 0 and from z = 2; the oracle renders
-    the wall red on the left half from the nearer one, blue everywhere from the farther one."""
+def test_a_candidate_is_a_change_only_where_the_finest_earlier_frame_saw_its_surface_otherwise():
+    """Two earlier 10x10 cameras looking down -z at a wall at z = -5, from z = 0 and from z = 2 (pixels of 0.5 and 0.7
+    there); the oracle renders the wall red on the left half from the nearer one, blue everywhere from the farther."""
     cameras = Pinholes(
         frames=torch.tensor([0, 1]),
         rotations=torch.eye(3).expand(2, 3, 3),
@@ -139,12 +139,15 @@ def test_a_candidate_is_a_change_only_where_the_nearest_earlier_frame_saw_its_su
             [1.0, 0.0, -5.0],  # the right half: blue from both
             [-1.0, 0.0, -8.0],  # behind the wall: no earlier frame saw it
             [-30.0, 0.0, -5.0],  # outside both images: new ground
+            [-1.0, 0.0, -5.0],  # the first, but the open task's pixel there is 0.2: detail the earlier frames missed
         ]
     )
-    colours = torch.stack([blue, red, blue, blue, blue])
-    found = seen_otherwise(points, colours, cameras, lambda cells: pinhole_rays(cameras, cells), render, 0.1, 2)  # type: ignore
-    assert found.tolist() == [True, False, False, False, False]
-    assert len(seen_otherwise(points[:0], colours[:0], cameras, pinhole_rays, render, 0.1, 2)) == 0  # type: ignore
+    colours = torch.stack([blue, red, blue, blue, blue, blue])
+    footprints = torch.tensor([0.5, 0.5, 0.5, 0.5, 0.5, 0.2])
+    rays = lambda cells: pinhole_rays(cameras, cells)  # noqa: E731
+    found = seen_otherwise(points, colours, footprints, cameras, rays, render, 0.1, 2)  # type: ignore
+    assert found.tolist() == [True, False, False, False, False, False]
+    assert len(seen_otherwise(points[:0], colours[:0], footprints[:0], cameras, rays, render, 0.1, 2)) == 0  # type: ignore
 
 
 def test_a_changed_cells_pixels_are_its_whole_block_inside_its_frame():

@@ -4,15 +4,17 @@ A later session may find the scene changed (an object moved, a wall repainted). 
 change, yet replay renders the earlier state from the frozen oracle and teaches it back. When a task opens, the oracle
 renders the open task's frames on a coarse grid of cells (colour and the distance to the surface), and a cell whose
 colour differs from the frame's pixel there by more than a threshold, and well more than the task's cells typically
-do, is a candidate. It counts as changed only if the earlier frame nearest the surface the oracle renders there sees
-that surface, unhidden, in another colour than the open task's pixel: a candidate no earlier frame saw is new ground,
-and one an earlier frame saw as the open task does is a view the oracle renders badly; replay teaches neither anything
-the new images contradict (a later session of an unchanged scene then keeps nearly all its replay). A replayed ray
-ends where the oracle's depth puts it; when that point, seen from an open-task frame, falls in a changed cell and is
-not hidden there behind the surface the oracle renders in that cell, the frame observes that point differently than
-the earlier tasks did, and the ray is skipped; so is a ray that crosses, on its way there, a point an open-task frame
-sees changed in front of the oracle's surface (an object moved into what was empty space). Points no open-task frame
-sees keep their replay: what the new images do not show keeps what the earlier session taught.
+do, is a candidate. It counts as changed only if the earlier frame that sees the surface the oracle renders there
+finest sees that surface, unhidden, in another colour than the open task's pixel, and with pixels at most twice as
+large there as the open task's: a candidate no earlier frame saw is new ground, one earlier frames saw only from far
+is detail the oracle never learned, and one an earlier frame saw as the open task does is a view the oracle renders
+badly; replay teaches none of them anything the new images contradict (a later session of an unchanged scene then
+keeps nearly all its replay). A replayed ray ends where the oracle's depth puts it; when that point, seen from an
+open-task frame, falls in a changed cell and is not hidden there behind the surface the oracle renders in that cell,
+the frame observes that point differently than the earlier tasks did, and the ray is skipped; so is a ray that
+crosses, on its way there, a point an open-task frame sees changed in front of the oracle's surface (an object moved
+into what was empty space). Points no open-task frame sees keep their replay: what the new images do not show keeps
+what the earlier session taught.
 
 Projection treats every camera as a pinhole (distortion is ignored for the point's cell).
 """
@@ -44,8 +46,13 @@ SEED = 0
 """The seed the oracle's jittered samples are drawn with while it renders the cells (training's generators untouched):
 a run resumed mid-task finds the same cells changed."""
 
+MAX_FOOTPRINT_RATIO = 2.0
+"""An earlier frame vouches for a change only where its pixel covers at most this many times the open task's pixel at
+the surface: a surface earlier frames saw only from far was learned blurred, and its detail in a close new view is
+not a change."""
 PROJECTIONS_AT_ONCE = 1 << 20
-"""Point-camera pairs projected at once while looking for the earlier frame nearest a changed cell's surface."""
+"""Point-camera pairs projected at once while looking for the earlier frame that sees a changed cell's surface
+finest."""
 
 
 Render = Callable[[RayBundle], Tuple[Tensor, Tensor]]
@@ -93,24 +100,29 @@ class Pinholes:
         inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         return u, v, inside, relative.norm(dim=-1)
 
-    def nearest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """For each of `points` (M, 3): the index of the nearest camera that has it inside its image (-1: none) and
-        the pixel (row, column) it falls in there."""
-        nearest, rows, columns = [], [], []
+    def footprints(self, distances: Tensor) -> Tensor:
+        """The side of a pixel of each camera at `distances` (..., F) from it."""
+        return distances / self.intrinsics[:, 0]
+
+    def finest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """For each of `points` (M, 3): the index of the camera that has it inside its image with the smallest pixel
+        footprint there (-1: none), the pixel (row, column) it falls in there and that footprint."""
+        finest, rows, columns, footprints = [], [], [], []
         step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
         for begin in range(0, len(points), step):
             chunk = points[begin : begin + step]
             u, v, inside, distance = self.project(chunk)
-            distance = distance.masked_fill(~inside, math.inf)
-            best = distance.argmin(dim=1)
+            footprint = self.footprints(distance).masked_fill(~inside, math.inf)
+            best = footprint.argmin(dim=1)
             each = torch.arange(len(chunk))
-            nearest.append(torch.where(inside[each, best], best, -1))
+            finest.append(torch.where(inside[each, best], best, -1))
             rows.append(v[each, best].floor().long())
             columns.append(u[each, best].floor().long())
-        if not nearest:
+            footprints.append(footprint[each, best])
+        if not finest:
             empty = torch.zeros(0, dtype=torch.long)
-            return empty, empty, empty
-        return torch.cat(nearest), torch.cat(rows), torch.cat(columns)
+            return empty, empty, empty, torch.zeros(0)
+        return torch.cat(finest), torch.cat(rows), torch.cat(columns), torch.cat(footprints)
 
 
 @dataclass
@@ -196,14 +208,19 @@ def open_task_view(
     if dataset.valid_pixels is not None:  # a masked-out pixel shows nothing the open task learns
         changed &= dataset.valid_pixels.contains(flat)
     candidates = torch.nonzero(changed).view(-1)
+    open_cameras = Pinholes.of(cameras, frames)
+    cell_cameras = torch.repeat_interleave(torch.arange(len(frames)), torch.tensor([len(i) for i in indices]))
+    footprints = distances[candidates] / open_cameras.intrinsics[cell_cameras[candidates], 0]
     earlier = Pinholes.of(cameras, earlier_frames)
-    confirmed = seen_otherwise(points[candidates], pixels[candidates], earlier, rays_of, render, threshold, chunk)
+    confirmed = seen_otherwise(
+        points[candidates], pixels[candidates], footprints, earlier, rays_of, render, threshold, chunk
+    )
     changed[candidates] = confirmed
     cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
     changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
     return OpenTaskView(
         task=task,
-        cameras=Pinholes.of(cameras, frames),
+        cameras=open_cameras,
         strides=torch.tensor(strides),
         grid_widths=torch.tensor(grid_widths),
         cell_offsets=torch.tensor(offsets),
@@ -216,23 +233,25 @@ def open_task_view(
 def seen_otherwise(
     points: Tensor,
     colours: Tensor,
+    footprints: Tensor,
     earlier: Pinholes,
     rays_of: Callable[[Tensor], RayBundle],
     render: Render,
     threshold: float,
     chunk: int,
 ) -> Tensor:
-    """(M,) whether the earlier frame nearest each of `points` (M, 3) (the surfaces the oracle renders in the open
-    task's candidate cells) that has it in view sees it, unhidden, in another colour than `colours` (M, 3) (the
-    open task's pixels there), as the oracle renders that frame. Where the oracle renders the open task's view badly
-    but no earlier frame saw the place (new ground) or saw it as the open task does (a viewpoint the oracle
-    generalises to poorly), replay teaches nothing the new images contradict: not a change."""
+    """(M,) whether the earlier frame that sees each of `points` (M, 3) (the surfaces the oracle renders in the open
+    task's candidate cells) finest sees it, unhidden, in another colour than `colours` (M, 3) (the open task's pixels
+    there), as the oracle renders that frame, with pixels at most MAX_FOOTPRINT_RATIO times `footprints` (M,) (the
+    open task's pixel sides there). Where the oracle renders the open task's view badly but no earlier frame saw the
+    place (new ground), saw it only from far (detail it never learned) or saw it as the open task does (a viewpoint
+    the oracle generalises to poorly), replay teaches nothing the new images contradict: not a change."""
     confirmed = torch.zeros(len(points), dtype=torch.bool)
-    nearest, rows, columns = earlier.nearest_view(points)
-    viewed = torch.nonzero(nearest >= 0).view(-1)
+    finest, rows, columns, earlier_footprints = earlier.finest_view(points)
+    viewed = torch.nonzero((finest >= 0) & (earlier_footprints <= MAX_FOOTPRINT_RATIO * footprints)).view(-1)
     if len(viewed) == 0:
         return confirmed
-    camera = nearest[viewed]
+    camera = finest[viewed]
     cells = torch.stack([earlier.frames[camera], rows[viewed], columns[viewed]], dim=-1)
     rendered, distance, _ = render_pixels(cells, rays_of, render, chunk)
     expected = (points[viewed] - earlier.centres[camera]).norm(dim=-1)
