@@ -35,6 +35,9 @@ class Interrupts:
         """Whether tasks are training: a signal waits for the end of the iteration instead of ending the process."""
         self.on_signal: Callable[[], None] = lambda: None
         """Called when a signal is deferred (the trainer leaves its pause, so that the next iteration comes)."""
+        self.answered = False
+        """Whether the run has saved and said how to resume: a later signal (the launcher stopping the processes once
+        one has ended) ends the process without another line."""
         self._previous: Dict[int, Any] = {}
         self._installed = 0
         """Installs not restored yet: the handlers stay until the outermost restore (ns-train's lasts the process)."""
@@ -54,14 +57,14 @@ class Interrupts:
                 for number, handler in self._previous.items():
                     signal.signal(number, handler)
                 self._previous.clear()
-        self.received, self.deferring = None, False
+        self.received, self.deferring, self.answered = None, False, False
 
     def _handle(self, number: int, frame: Optional[FrameType]) -> None:
         if self.deferring and self.received is None:
             self.received = number
             self.on_signal()
             return
-        if comms.is_main_process():  # every process of the run receives Ctrl-C; one says so
+        if comms.is_main_process() and not self.answered:  # every process of the run receives Ctrl-C; one says so
             name = signal.Signals(number).name
             print(f"Stopped by {name}; the checkpoints written so far are kept", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_CODES[number])

@@ -33,7 +33,7 @@ from continual_nerf import run_lock
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
 from continual_nerf.errors import ContinualConfigError
-from continual_nerf.interrupts import INTERRUPTS, resume_command
+from continual_nerf.interrupts import INTERRUPTS, Interrupts, resume_command
 from continual_nerf.recipes import set_up_like_ns_train
 from continual_nerf.run_lock import LOCK_NAME, claim_run_folder, release_run_folder
 
@@ -286,3 +286,16 @@ def test_ctrl_c_while_a_run_sets_up_ends_it_at_once_with_one_line(tmp_path, caps
     assert exit_info.value.code == 130
     assert capsys.readouterr().err.splitlines()[-1] == "Stopped by SIGINT; the checkpoints written so far are kept"
     assert signal.getsignal(signal.SIGINT) == signal.default_int_handler, "nerfstudio's own handler is back"
+
+
+@pytest.mark.parametrize("answered", [False, True])
+def test_a_signal_once_the_interrupt_is_answered_ends_the_process_without_another_line(answered, capsys):
+    """With several processes the launcher stops the others once one has ended (SIGTERM): rank 0, having saved and
+    said how to resume, ends without a second line; before it has, the signal is a user's second one and says so."""
+    interrupts = Interrupts()
+    interrupts.deferring, interrupts.received, interrupts.answered = True, signal.SIGINT, answered
+    with pytest.raises(SystemExit) as exit_info:
+        interrupts._handle(signal.SIGTERM, None)
+    assert exit_info.value.code == 143
+    said = [] if answered else ["Stopped by SIGTERM; the checkpoints written so far are kept"]
+    assert capsys.readouterr().err.splitlines() == said

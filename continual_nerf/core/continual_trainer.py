@@ -389,7 +389,9 @@ class ContinualTrainer(DeferredPauseTrainer):
         if not number:
             return
         if not distributed.is_main():
-            raise SystemExit(EXIT_CODES[number])  # rank 0 saves, writes and says how to resume
+            # rank 0 saves, writes and says how to resume; the launcher stops every process once one has ended
+            distributed.barrier()
+            raise SystemExit(EXIT_CODES[number])
         if step > first_step(self):
             self.save_checkpoint(step - 1)
             # this run's own checkpoint resumes it, a continued run's too: without starting another session
@@ -406,6 +408,8 @@ class ContinualTrainer(DeferredPauseTrainer):
             file=sys.stderr,
             flush=True,
         )
+        INTERRUPTS.answered = True
+        distributed.barrier()
         raise SystemExit(EXIT_CODES[number])
 
     def _count_trained_step(self, step: int) -> None:
