@@ -65,7 +65,11 @@ JOINT_OPTIONS = (
     f"--pipeline.lr-decay-start {CONTINUAL_NGP.pipeline.lr_decay_start}"
 )
 """The joint bound trains as continual-ngp does, every image at once: its rates fall over each task's last quarter."""
-MOVED_OBJECT_OPTIONS = ("--pipeline.relearn-proposal-networks True", "--pipeline.restart-optimizer-moments True")
+MOVED_OBJECT_OPTIONS = (
+    "--pipeline.relearn-proposal-networks True",
+    "--pipeline.restart-optimizer-moments True",
+    "--pipeline.datamanager.current-task-fraction 0.75",
+)
 """What the README recommends for a later capture where objects moved."""
 TITLE = "Sessions: a trained run learns a later capture"
 """The heading of the benchmark's tables."""
