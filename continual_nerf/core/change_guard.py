@@ -100,9 +100,9 @@ class Pinholes:
         inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         return u, v, inside, relative.norm(dim=-1)
 
-    def footprints(self, distances: Tensor) -> Tensor:
-        """The side of a pixel of each camera at `distances` (..., F) from it."""
-        return distances / self.intrinsics[:, 0]
+    def footprints(self, distances: Tensor, cameras: Tensor) -> Tensor:
+        """The side of a pixel of the cameras numbered `cameras` at `distances` (broadcast with them) from them."""
+        return distances / self.intrinsics[cameras, 0]
 
     def finest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """For each of `points` (M, 3): the index of the camera that has it inside its image with the smallest pixel
@@ -112,7 +112,7 @@ class Pinholes:
         for begin in range(0, len(points), step):
             chunk = points[begin : begin + step]
             u, v, inside, distance = self.project(chunk)
-            footprint = self.footprints(distance).masked_fill(~inside, math.inf)
+            footprint = self.footprints(distance, torch.arange(len(self.centres))).masked_fill(~inside, math.inf)
             best = footprint.argmin(dim=1)
             each = torch.arange(len(chunk))
             finest.append(torch.where(inside[each, best], best, -1))
@@ -210,14 +210,13 @@ def open_task_view(
     candidates = torch.nonzero(changed).view(-1)
     open_cameras = Pinholes.of(cameras, frames)
     cell_cameras = torch.repeat_interleave(torch.arange(len(frames)), torch.tensor([len(i) for i in indices]))
-    footprints = distances[candidates] / open_cameras.intrinsics[cell_cameras[candidates], 0]
+    footprints = open_cameras.footprints(distances[candidates], cell_cameras[candidates])
     earlier = Pinholes.of(cameras, earlier_frames)
     confirmed = seen_otherwise(
         points[candidates], pixels[candidates], footprints, earlier, rays_of, render, threshold, chunk
     )
     changed[candidates] = confirmed
-    cell_strides = torch.repeat_interleave(torch.tensor(strides), torch.tensor([len(i) for i in indices]))
-    changed_pixels = pixels_of_cells(dataset, cells[changed], cell_strides[changed])
+    changed_pixels = pixels_of_cells(dataset, cells[changed], torch.tensor(strides)[cell_cameras[changed]])
     return OpenTaskView(
         task=task,
         cameras=open_cameras,
