@@ -13,6 +13,7 @@ from helpers import DEMO_CACHE
 
 from continual_nerf.bench.sessions import (
     MEASURES_FILENAME,
+    ONE_TASK,
     SessionsBenchmark,
     changed_rows,
     markdown,
@@ -57,7 +58,7 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     runs = {run.name: run for run in bench(tmp_path).changed_runs("room", "wall-repainted")}
     moved = "continual-ngp, moved-object options"
     assert set(runs) == {"continual-ngp", "continual-ngp, change guard off", "continual-ngp, proposal networks relearned",
-                         moved, "iNGP-Incre", "joint bound, new state", "joint bound, new state, 2 tasks",
+                         moved, ONE_TASK, "iNGP-Incre", "joint bound, new state", "joint bound, new state, 2 tasks",
                          "joint bound, both walks"}  # fmt: skip
     benchmark = bench(tmp_path)
     first, later = (benchmark.session_config(runs["continual-ngp"], index) for index in range(2))
@@ -70,6 +71,12 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     assert not relearned.pipeline.restart_optimizer_moments and not later.pipeline.restart_optimizer_moments
     moved_later = benchmark.session_config(runs[moved], 1).pipeline
     assert moved_later.relearn_proposal_networks and moved_later.restart_optimizer_moments
+    one_task = benchmark.session_config(runs[ONE_TASK], 1).pipeline
+    assert one_task.relearn_proposal_networks and one_task.datamanager.current_task_fraction == 0.75
+    tasks = (one_task.datamanager.num_tasks, one_task.datamanager.iterations_per_task)
+    assert tasks == (1, 2 * moved_later.datamanager.iterations_per_task), "the budget of the later session's 2 tasks"
+    assert runs[moved].arguments[1][:2] == runs[ONE_TASK].arguments[1][:2], "the same options, the same capture"
+    assert len(runs[moved].arguments[1]) == 3, "a session of the benchmark's iterations keeps its measures current"
     assert benchmark.session_config(runs["iNGP-Incre"], 1).method_name == "continual-ngp-incre"
     new_state = benchmark.session_config(runs["joint bound, new state"], 0)
     both = benchmark.session_config(runs["joint bound, both walks"], 0)

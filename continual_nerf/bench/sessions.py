@@ -71,6 +71,8 @@ MOVED_OBJECT_OPTIONS = (
     "--pipeline.datamanager.current-task-fraction 0.75",
 )
 """What the README recommends for a later capture where objects moved."""
+ONE_TASK = "continual-ngp, moved-object options, later capture as one task"
+"""The row whose later session is one task of the budget of LATER_TASKS."""
 TITLE = "Sessions: a trained run learns a later capture"
 """The heading of the benchmark's tables."""
 TARGETS = {
@@ -92,6 +94,8 @@ class Session:
     """continual-demo options of this session's capture (its part of the path, the change, the laps)."""
     num_tasks: int
     """Tasks of the session."""
+    iterations_per_task: Optional[int] = None
+    """Training iterations of each of its tasks; None: the benchmark's --iterations-per-task."""
 
 
 @dataclass(frozen=True)
@@ -117,8 +121,12 @@ class Run:
 
     @property
     def arguments(self) -> List[Any]:
-        """What the run is trained with, as its measures file keeps it."""
-        return [[list(s.arguments), [list(pair) for pair in s.demo], s.num_tasks] for s in self.sessions]
+        """What the run is trained with, as its measures file keeps it (a session's own iterations per task only where
+        it has them: the measures of runs without stay current)."""
+        return [
+            [list(s.arguments), [list(pair) for pair in s.demo], s.num_tasks, *filter(None, [s.iterations_per_task])]
+            for s in self.sessions
+        ]
 
 
 @dataclass
@@ -181,13 +189,16 @@ class SessionsBenchmark(DemoBenchmark):
         joint = self.arguments("continual-ngp-joint", JOINT_OPTIONS)
         total = FIRST_TASKS + LATER_TASKS
 
-        def two_sessions(name: str, method: str, *later_options: str) -> Run:
+        def two_sessions(
+            name: str, method: str, *later_options: str, later_tasks: Tuple[int, Optional[int]] = (LATER_TASKS, None)
+        ) -> Run:
+            """`later_tasks`: the later session's tasks and their iterations (None: the benchmark's)."""
             return self.run(
                 scene,
                 experiment,
                 name,
                 Session(self.arguments(method), first, FIRST_TASKS),
-                Session(self.arguments(method, *later_options), later, LATER_TASKS),
+                Session(self.arguments(method, *later_options), later, *later_tasks),
             )
 
         runs = [
@@ -199,6 +210,13 @@ class SessionsBenchmark(DemoBenchmark):
                 "--pipeline.relearn-proposal-networks True",
             ),
             two_sessions("continual-ngp, moved-object options", "continual-ngp", *MOVED_OBJECT_OPTIONS),
+            # a later capture at hand in full: its images teach the change together, no task distils the one before
+            two_sessions(
+                ONE_TASK,
+                "continual-ngp",
+                *MOVED_OBJECT_OPTIONS,
+                later_tasks=(1, LATER_TASKS * self.iterations_per_task),
+            ),
             two_sessions("iNGP-Incre", "continual-ngp-incre"),
             self.run(scene, experiment, "joint bound, new state", Session(joint, later, total)),
             # the budget the later session had to learn the change in
@@ -236,7 +254,7 @@ class SessionsBenchmark(DemoBenchmark):
             device=self.device,
             dataparser=demo,
             num_tasks=session.num_tasks,
-            iterations_per_task=self.iterations_per_task,
+            iterations_per_task=session.iterations_per_task or self.iterations_per_task,
             train_num_rays_per_batch=self.rays_per_batch,
         )
         config.timestamp = "run"
