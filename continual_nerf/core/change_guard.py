@@ -106,8 +106,8 @@ class Pinholes:
 
     def finest_view(self, points: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """For each of `points` (M, 3): the index of the camera that has it inside its image with the smallest pixel
-        footprint there (-1: none), the pixel (row, column) it falls in there and that footprint."""
-        finest, rows, columns, footprints = [], [], [], []
+        footprint there (-1: none), the pixel (row, column) it falls in there and its distance from that camera."""
+        finest, rows, columns, distances = [], [], [], []
         step = max(1, PROJECTIONS_AT_ONCE // max(1, len(self.centres)))
         for begin in range(0, len(points), step):
             chunk = points[begin : begin + step]
@@ -118,11 +118,11 @@ class Pinholes:
             finest.append(torch.where(inside[each, best], best, -1))
             rows.append(v[each, best].floor().long())
             columns.append(u[each, best].floor().long())
-            footprints.append(footprint[each, best])
+            distances.append(distance[each, best])
         if not finest:
             empty = torch.zeros(0, dtype=torch.long)
             return empty, empty, empty, torch.zeros(0)
-        return torch.cat(finest), torch.cat(rows), torch.cat(columns), torch.cat(footprints)
+        return torch.cat(finest), torch.cat(rows), torch.cat(columns), torch.cat(distances)
 
 
 @dataclass
@@ -231,7 +231,7 @@ def open_task_view(
 
 def seen_otherwise(
     points: Tensor,
-    colours: Tensor,
+    pixels: Tensor,
     footprints: Tensor,
     earlier: Pinholes,
     rays_of: Callable[[Tensor], RayBundle],
@@ -240,22 +240,23 @@ def seen_otherwise(
     chunk: int,
 ) -> Tensor:
     """(M,) whether the earlier frame that sees each of `points` (M, 3) (the surfaces the oracle renders in the open
-    task's candidate cells) finest sees it, unhidden, in another colour than `colours` (M, 3) (the open task's pixels
+    task's candidate cells) finest sees it, unhidden, in another colour than `pixels` (M, 3) (the open task's pixels
     there), as the oracle renders that frame, with pixels at most MAX_FOOTPRINT_RATIO times `footprints` (M,) (the
     open task's pixel sides there). Where the oracle renders the open task's view badly but no earlier frame saw the
     place (new ground), saw it only from far (detail it never learned) or saw it as the open task does (a viewpoint
     the oracle generalises to poorly), replay teaches nothing the new images contradict: not a change."""
     confirmed = torch.zeros(len(points), dtype=torch.bool)
-    finest, rows, columns, earlier_footprints = earlier.finest_view(points)
-    viewed = torch.nonzero((finest >= 0) & (earlier_footprints <= MAX_FOOTPRINT_RATIO * footprints)).view(-1)
+    finest, rows, columns, distances = earlier.finest_view(points)
+    resolved = earlier.footprints(distances, finest.clamp_min(0)) <= MAX_FOOTPRINT_RATIO * footprints
+    viewed = torch.nonzero((finest >= 0) & resolved).view(-1)
     if len(viewed) == 0:
         return confirmed
     camera = finest[viewed]
     cells = torch.stack([earlier.frames[camera], rows[viewed], columns[viewed]], dim=-1)
     rendered, distance, _ = render_pixels(cells, rays_of, render, chunk)
-    expected = (points[viewed] - earlier.centres[camera]).norm(dim=-1)
+    expected = distances[viewed]
     unhidden = (distance - expected).abs() <= VISIBILITY_TOLERANCE * expected
-    differs = (rendered - colours[viewed]).abs().mean(dim=-1) > threshold
+    differs = (rendered - pixels[viewed]).abs().mean(dim=-1) > threshold
     confirmed[viewed] = unhidden & differs
     return confirmed
 
