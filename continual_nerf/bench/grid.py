@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import multiprocessing
 import re
 import shlex
 import subprocess
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -27,6 +25,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, recipe_config
 from continual_nerf.bench.memory import MIB, peak_resident_bytes
+from continual_nerf.bench.run_pool import run_pool
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -262,7 +261,7 @@ class Grid(DemoBenchmark):
     """ns-train options for every run, as after `ns-train METHOD` (e.g. --machine.seed 1
     --optimizers.camera-opt.optimizer.lr 3e-4); continual-demo options after the word continual-demo."""
     jobs: int = 1
-    """Runs trained at once, each in a process of its own (give each OMP_NUM_THREADS=cores/jobs)."""
+    """Runs trained at once, each in a process of its own with cores / jobs threads (unless OMP_NUM_THREADS is set)."""
     output_dir: Path = Path("outputs/bench")
     """Runs, results.json and results.md; finished runs of the same arguments found here are not trained again."""
 
@@ -306,8 +305,7 @@ class Grid(DemoBenchmark):
         pending = [run for run in runs if finished(run) is None]
         configs = [self.config(run) for run in pending]  # every recipe is checked before anything trains
         if pending:
-            context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(self.jobs, mp_context=context, max_tasks_per_child=1) as pool:
+            with run_pool(self.jobs) as pool:
                 list(pool.map(train_run, pending, configs))
         return [read_summary(run) for run in runs]
 

@@ -29,6 +29,7 @@ from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench import quality, real_capture, sessions
 from continual_nerf.bench.demo_runs import Device, check_names
 from continual_nerf.bench.grid import RunSummary, Setting, source_commit
+from continual_nerf.bench.run_pool import threads_per_run
 from continual_nerf.dataparsers.continual_demo_dataparser import DemoScene
 
 QUALITY_SETTINGS = ("5x240", "10x120")
@@ -122,7 +123,7 @@ class Results:
     """Regenerates docs/results.md and the README's results table from the benchmark modules."""
 
     jobs: int = 1
-    """Runs trained at once, each in a process of its own (give each OMP_NUM_THREADS=cores/jobs)."""
+    """Runs trained at once, each in a process of its own with cores / jobs threads (unless OMP_NUM_THREADS is set)."""
     device: Device = "cpu"
     """Device every run trains on."""
     data: Path = Path("data/continual-demo")
@@ -229,10 +230,10 @@ class Results:
         """Where and from what code a section's numbers come."""
         trained = sorted(set(commits))
         runs = f" from runs trained at {', '.join(f'`{c}`' for c in trained)}" if trained else ""
-        threads = os.environ.get("OMP_NUM_THREADS", "all cores")
+        threads = threads_per_run(self.jobs) or os.environ["OMP_NUM_THREADS"]
         return (
             f"Generated at commit `{source_commit()}`{runs}; {platform.machine()} machine with {os.cpu_count()} cores, "
-            f"device {self.device}, torch {torch.__version__}, {self.jobs} run(s) at once, OMP_NUM_THREADS {threads}."
+            f"device {self.device}, torch {torch.__version__}, {self.jobs} run(s) at once, {threads} thread(s) each."
         )
 
 

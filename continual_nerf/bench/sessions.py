@@ -26,10 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import multiprocessing
 import shlex
 import shutil
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
@@ -45,6 +43,7 @@ from rich.table import Table
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names, recipe_config
 from continual_nerf.bench.grid import DEMO, folder_name, parse_recipe, source_commit, with_options
+from continual_nerf.bench.run_pool import run_pool
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager
 from continual_nerf.core.continual_trainer import ContinualTrainerConfig
@@ -150,7 +149,7 @@ class SessionsBenchmark(DemoBenchmark):
     """More runs of (b), each NAME=METHOD OPTIONS: two sessions of METHOD whose later session adds OPTIONS (e.g.
     'fraction=continual-ngp --pipeline.datamanager.current-task-fraction 0.75')."""
     jobs: int = 1
-    """Runs trained at once, each in a process of its own (give each OMP_NUM_THREADS=cores/jobs)."""
+    """Runs trained at once, each in a process of its own with cores / jobs threads (unless OMP_NUM_THREADS is set)."""
     output_dir: Path = Path("outputs/bench-sessions")
     """Runs, results.json and results.md; finished runs of the same arguments found here are not trained again."""
 
@@ -277,8 +276,7 @@ class SessionsBenchmark(DemoBenchmark):
         pending = [run for run in runs if read_measures(run) is None]
         configs = [[self.session_config(run, i) for i in range(len(run.sessions))] for run in pending]
         if pending:
-            context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(self.jobs, mp_context=context, max_tasks_per_child=1) as pool:
+            with run_pool(self.jobs) as pool:
                 list(pool.map(train_and_measure, pending, configs))
         results: Dict[str, Any] = {}
         for run in runs:
