@@ -4,11 +4,11 @@
         [--sections quality default-budget depth sweep real-capture sessions]
 
 Trains (or reads back from `--output-dir`, so an interrupted run resumes) the quality benchmark's main recipes on both
-demo scenes at 5 x 240 and 10 x 120, continual-ngp and every pixel kept at the default 10 x 1000, its depth recipes at 5 x 60, 5 x 120, 5 x 240 and 10 x 120, the long street's
-task-count sweep, the real-capture benchmark's flaws with the features the README recommends for them and the
-sessions benchmark on both scenes, then rewrites `docs/results.md` and the table between the README's `results`
-markers. Each section names the benchmark command that makes it alone; `--sections` regenerates only those named and
-keeps the page's others word for word.
+demo scenes at 5 x 240 and 10 x 120, continual-ngp and every pixel kept at the default 10 x 1000, its depth recipes
+at 5 x 60, 5 x 120, 5 x 240 and 10 x 120, the long street's task-count sweep, the real-capture benchmark's flaws with
+the features the README recommends for them and the sessions benchmark on both scenes, then rewrites
+`docs/results.md` and the table between the README's `results` markers. Each section names the benchmark command
+that makes it alone; `--sections` regenerates only those named and keeps the page's others word for word.
 """
 
 from __future__ import annotations
