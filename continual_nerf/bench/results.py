@@ -203,16 +203,17 @@ class Results:
             CONSOLE.print(f"[bold green]Wrote the results table of {self.readme}")
 
     def quality_lines(self) -> List[str]:
-        bench = self.quality()
-        results = bench.measure()
-        provenance = self.provenance(grid_commits(results.values()))
-        return quality_section(bench, results, SECTION_TITLES["quality"], BOUNDS_NOTE, provenance)
+        return self.grid_lines("quality", self.quality(), BOUNDS_NOTE)
 
     def default_budget_lines(self) -> List[str]:
         bench = self.quality("default-budget", DEFAULT_BUDGET_SETTINGS, DEFAULT_BUDGET_RECIPES)
+        return self.grid_lines("default-budget", bench, DEFAULT_BUDGET_NOTE)
+
+    def grid_lines(self, name: str, bench: quality.QualityBenchmark, note: str) -> List[str]:
+        """Section `name`: the tables of a quality grid without a plot, under its command and provenance."""
         results = bench.measure()
         provenance = self.provenance(grid_commits(results.values()))
-        return quality_section(bench, results, SECTION_TITLES["default-budget"], DEFAULT_BUDGET_NOTE, provenance)
+        return quality_section(bench, results, SECTION_TITLES[name], note, provenance)
 
     def depth_lines(self) -> List[str]:
         bench = self.quality("depth", DEPTH_SETTINGS, DEPTH_RECIPES)
