@@ -14,11 +14,13 @@ import torch
 from helpers import DEMO_CACHE
 from PIL import Image
 
+from continual_nerf.bench import grid
 from continual_nerf.bench.grid import Recipe, RunSummary, Setting, folder_name, parse_recipe, with_options
 from continual_nerf.bench.quality import JOINT, RECIPES, QualityBenchmark, plot_quality, series, total
 from continual_nerf.bench.results import with_tasks
 from continual_nerf.bench.throughput import ThroughputBenchmark
 from continual_nerf.core.accuracy_matrix import AccuracyMatrix
+from continual_nerf.core.continual_trainer import ContinualTrainer
 from continual_nerf.core.depth_model import ContinualNGPDepthModelConfig
 from continual_nerf.core.experience_replay import ExperienceReplayBuffer
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
@@ -274,3 +276,27 @@ def test_the_plot_runs_against_the_budget_per_task_where_the_tasks_are_the_same_
 def test_the_depth_plot_keeps_the_settings_of_its_number_of_tasks():
     results = {scene: {key: {} for key in ("5x60", "5x120", "10x120")} for scene in ("room", "street")}
     assert with_tasks(results, 5) == {"room": {"5x60": {}, "5x120": {}}, "street": {"5x60": {}, "5x120": {}}}  # type: ignore[arg-type]
+
+
+@pytest.mark.slow
+def test_a_run_records_the_commit_checked_out_when_it_started_not_when_it_finished(tmp_path: Path, monkeypatch):
+    checked_out = ["started"]
+    monkeypatch.setattr(grid, "source_commit", lambda: checked_out[-1])
+    train = ContinualTrainer.train
+
+    def train_then_commit(trainer: ContinualTrainer) -> None:
+        train(trainer)
+        checked_out.append("committed while it trained")
+
+    monkeypatch.setattr(ContinualTrainer, "train", train_then_commit)
+    bench = QualityBenchmark(
+        data=DEMO_CACHE,
+        output_dir=tmp_path / "out",
+        rays_per_batch=32,
+        options=("--pipeline.model.num-levels 4 --pipeline.model.log2-hashmap-size 12 continual-demo --num-frames 8 "
+                 "--width 16 --height 12",),
+    )  # fmt: skip
+    (run,) = bench.runs("room", Setting.parse("1x2"), [Recipe.of("a", "continual-ngp")])
+    grid.train_run(run, bench.config(run))
+    assert checked_out[-1] == "committed while it trained", "the run trained through the patched trainer"
+    assert grid.read_summary(run).commit == "started"

@@ -171,6 +171,7 @@ class RunSummary:
         train_seconds: float,
         tasks: Optional["TaskRecord"] = None,
         extras: Optional[Dict[str, float]] = None,
+        commit: str = "unknown",
     ) -> "RunSummary":
         final = matrix.psnr[-1]
         measured = {j: value for j, value in enumerate(final) if value is not None}
@@ -188,7 +189,7 @@ class RunSummary:
             seconds_per_task=list(tasks.seconds) if tasks is not None else [],
             peak_mib_per_task=list(tasks.peak_mib) if tasks is not None else [],
             extras=dict(extras or {}),
-            commit=source_commit(),
+            commit=commit,
             final_depth_abs_rel=matrix.mean_depth_abs_rel[-1] if matrix.mean_depth_abs_rel else None,
             final_depth_rmse=matrix.mean_depth_rmse[-1] if matrix.mean_depth_rmse else None,
             depth_growth=depth_growth(matrix),
@@ -348,6 +349,7 @@ class TaskRecord:
 
 def train_run(run: Run, config: ContinualTrainerConfig) -> None:
     """Train one run in this process, as ns-train does, and write its summary."""
+    commit = source_commit()  # the code this process imports now, whatever is checked out by the time it finishes
     CONSOLE.print(f"[bold]{run.scene}, {run.setting}: training {run.recipe.name}")
     config.save_config()
     trainer = set_up_like_ns_train(config)
@@ -357,6 +359,6 @@ def train_run(run: Run, config: ContinualTrainerConfig) -> None:
     trainer.train()
     matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     extras = run.recipe.measure(trainer) if run.recipe.measure is not None else {}
-    summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, tasks, extras)
+    summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, tasks, extras, commit)
     saved = {"arguments": list(run.arguments), "summary": dataclasses.asdict(summary)}
     write_text_atomically(run.summary_path, json.dumps(saved, indent=1))

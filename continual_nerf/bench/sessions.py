@@ -319,6 +319,7 @@ def run_commits(results: Dict[str, Any]) -> List[str]:
 def train_and_measure(run: Run, configs: Sequence[ContinualTrainerConfig]) -> None:
     """Train `run`'s sessions one after the other in this process (each session's images deleted before the next
     starts), then measure it and write its measures."""
+    commit = source_commit()  # the code this process imports now, whatever is checked out by the time it finishes
     for folder in (run.folder, run.data):  # an unfinished run of an interrupted benchmark starts over
         shutil.rmtree(folder, ignore_errors=True)
     seconds = []
@@ -334,7 +335,7 @@ def train_and_measure(run: Run, configs: Sequence[ContinualTrainerConfig]) -> No
     else:
         measures = changed_measures(configs)
     measures["train_seconds"] = seconds[-1]
-    measures["commit"] = source_commit()
+    measures["commit"] = commit
     saved = {"arguments": run.arguments, "measures": measures}
     write_text_atomically(run.folder / MEASURES_FILENAME, json.dumps(saved, indent=1))
 
