@@ -382,6 +382,14 @@ CORPUS = [
         ),
     ),
     BadInput(
+        "distillation-loss-mult-0",
+        lambda context: (
+            with_model_options(earlier_run_config(), distillation_loss_mult=0.0),
+            "--pipeline.model.distillation-loss-mult must be positive (--pipeline.datamanager.replay False turns "
+            "replay off), got 0.0",
+        ),
+    ),
+    BadInput(
         "replay-weights-loss-mult-negative",
         lambda context: (
             with_model_options(earlier_run_config(), replay_weights_loss_mult=-0.1),

@@ -6,9 +6,13 @@ import dataclasses
 
 import torch
 from helpers import demo_parser, tiny_config
+from nerfstudio.data.scene_box import SceneBox
 
+from continual_nerf.compilation import random_rays
 from continual_nerf.core.distillation_loss import distillation_loss, weights_distillation_loss
+from continual_nerf.core.ngp_model import ContinualNGPModelConfig
 from continual_nerf.method_configs import CONTINUAL_NGP, CONTINUAL_NGP_DEPTH
+from continual_nerf.recipes import small_model
 
 
 def test_each_term_sums_its_own_rays_squared_error_over_the_whole_batch():
@@ -38,6 +42,23 @@ def test_a_batch_without_replay_has_a_zero_distillation_term_and_gradients_reach
     assert terms["distillation_loss"].item() == 0.0
     (terms["rgb_loss"] + terms["distillation_loss"]).backward()
     assert pred.grad is not None and (pred.grad.abs().sum(dim=-1) > 0).all()
+
+
+def test_the_distillation_term_is_scaled_by_its_lambda_and_the_open_tasks_term_is_not():
+    config = small_model(ContinualNGPModelConfig(compile=False))
+    model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=1)
+    model.train()
+    torch.manual_seed(0)
+    outputs = model(random_rays(model, 32))
+    batch = {"image": torch.rand(32, 3), "is_replay": torch.arange(32) % 2 == 0}
+    terms = {}
+    for mult in (1.0, 3.0):
+        model.config = dataclasses.replace(model.config, distillation_loss_mult=mult)
+        terms[mult] = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    assert terms[1.0]["distillation_loss"] > 0
+    torch.testing.assert_close(terms[3.0]["distillation_loss"], 3 * terms[1.0]["distillation_loss"])
+    torch.testing.assert_close(terms[3.0]["rgb_loss"], terms[1.0]["rgb_loss"])
+    assert CONTINUAL_NGP.pipeline.model.distillation_loss_mult == 1.0, "the paper's Eq. 4 by default"
 
 
 def test_the_weights_term_is_the_squared_distance_of_the_distilled_rays_over_the_whole_batch():

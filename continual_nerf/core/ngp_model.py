@@ -103,6 +103,10 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
     replay_sample_fraction: float = 1.0
     """Fraction of the samples per ray (every proposal round and the field) the replay oracle renders targets with:
     1 renders them as the model does; 0.5 halves the oracle's cost and loses fidelity that compounds over tasks."""
+    distillation_loss_mult: float = 1.0
+    """Lambda of Eq. 4's distillation term: replayed rays' squared colour error against the replay oracle, beside the
+    open task's pixels. Above 1, closed tasks follow the oracle more closely at the cost of the open task's share of
+    each step, which a capture in many tasks (each closed task replayed by few rays) forgets less with. 1: the paper."""
     replay_weights_loss_mult: float = 0.0
     """Lambda of the geometry distillation: replayed rays' weights along the ray pulled to those the replay oracle's
     density gives at the same samples (squared error), so closed tasks' surfaces stay where they were. It pays where
@@ -114,6 +118,11 @@ class ContinualNGPModelConfig(ValidatedConfig, NerfactoModelConfig):
         if not self.replay_sample_fraction > 0:
             raise ContinualConfigError(
                 f"--pipeline.model.replay-sample-fraction must be positive, got {self.replay_sample_fraction}"
+            )
+        if not self.distillation_loss_mult > 0:
+            raise ContinualConfigError(
+                f"--pipeline.model.distillation-loss-mult must be positive (--pipeline.datamanager.replay False turns "
+                f"replay off), got {self.distillation_loss_mult}"
             )
         if not self.replay_weights_loss_mult >= 0:
             raise ContinualConfigError(
@@ -300,11 +309,11 @@ class ContinualNGPModel(NerfactoModel):
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if "is_replay" in batch:
             del loss_dict["rgb_loss"]
-            loss_dict.update(
-                distillation_loss(
-                    outputs["rgb"], batch["image"].to(self.device), batch["is_replay"], batch.get(REPLAY_SKIPPED)
-                )
+            terms = distillation_loss(
+                outputs["rgb"], batch["image"].to(self.device), batch["is_replay"], batch.get(REPLAY_SKIPPED)
             )
+            terms["distillation_loss"] = self.config.distillation_loss_mult * terms["distillation_loss"]
+            loss_dict.update(terms)
         if REPLAY_WEIGHTS in batch:
             distilled = distilled_rays(batch["is_replay"], batch.get(REPLAY_SKIPPED))
             loss = weights_distillation_loss(outputs["weights_list"][-1], batch[REPLAY_WEIGHTS], distilled)
