@@ -40,7 +40,9 @@ class FinishedQuality:
 def no_training(monkeypatch: pytest.MonkeyPatch) -> None:
     """Each section's builder returns fixed lines instead of training its benchmark; the quality grid's finished runs
     give the README a fixed table."""
-    for name, method in zip(SECTIONS, ("quality", "default_budget", "depth", "sweep", "capture", "sessions")):
+    for name, method in zip(
+        SECTIONS, ("quality", "default_budget", "distillation", "depth", "sweep", "capture", "sessions")
+    ):
         monkeypatch.setattr(Results, f"{method}_lines", fresh(name))
     monkeypatch.setattr(Results, "quality", lambda _self: FinishedQuality())
     monkeypatch.setattr(results, "summary_table", lambda grid: f"table of {sorted(grid)}")

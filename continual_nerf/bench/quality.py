@@ -50,6 +50,7 @@ RECIPES: Dict[str, str] = {
     "continual-ngp, paper recipe": "continual-ngp-paper",
     "continual-ngp, ER 1 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.01",
     "continual-ngp, ER 5 %": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 0.05",
+    "continual-ngp, distillation x2": "continual-ngp --pipeline.model.distillation-loss-mult 2",
     # keeps what the continual setting forbids keeping: how far the tasks' arrival alone leaves a run from the bound
     "every pixel kept": "continual-ngp --pipeline.datamanager.replay-buffer-fraction 1 "
     "--pipeline.datamanager.replay-buffer-share 1.0",

@@ -46,6 +46,13 @@ DEFAULT_BUDGET_NOTE = (
     "goes on training a closed task on its own pixels, which replay by distillation cannot; a row's final mean against "
     "its *right after own task* says how much its closed tasks gained or lost after their task."
 )
+DISTILLATION_RECIPES = ("continual-ngp", "continual-ngp, distillation x2", "every pixel kept")
+"""Eq. 4's distillation term at the paper's weight and at twice it, against the most any replay can give."""
+DISTILLATION_NOTE = (
+    "`--pipeline.model.distillation-loss-mult 2` weighs Eq. 4's distillation term twice the open task's pixels: the "
+    "same rays and step time, closed tasks held closer to the replay oracle, the open task a smaller share of each "
+    "step. *largest drop from best* says how much a task forgot; *right after own task* how much the open task learned."
+)
 ROOM_CAPTURES = ("clean", "exposure +-30 %", "poses off 1 deg, 1 %")
 ROOM_FEATURES = ("off", "colour transform per image", "pose refinement from mid-task")
 STREET_CAPTURES = ("clean", "camera responses +-20 %")
@@ -97,11 +104,12 @@ SWEEP_PLOT = "sweep.png"
 """The sweep's plot of PSNR against the number of tasks, beside the results page."""
 README_MARKERS = ("<!-- results: begin -->", "<!-- results: end -->")
 """The README's generated table lies between these lines."""
-SECTIONS = ("quality", "default-budget", "depth", "sweep", "real-capture", "sessions")
+SECTIONS = ("quality", "default-budget", "distillation-weight", "depth", "sweep", "real-capture", "sessions")
 """The page's sections, in its order; --sections regenerates some and keeps the others as the page has them."""
 SECTION_TITLES = {
     "quality": "Continual-ngp against its bounds",
     "default-budget": "Ten tasks at the default budget",
+    "distillation-weight": "Distillation's weight",
     "depth": "Depth maps: continual-ngp-depth",
     "sweep": "Long captures: 2 to 40 tasks",
     "real-capture": "Real-capture flaws",
@@ -188,6 +196,7 @@ class Results:
         build = {
             "quality": self.quality_lines,
             "default-budget": self.default_budget_lines,
+            "distillation-weight": self.distillation_lines,
             "depth": self.depth_lines,
             "sweep": self.sweep_lines,
             "real-capture": self.capture_lines,
@@ -208,6 +217,10 @@ class Results:
     def default_budget_lines(self) -> List[str]:
         bench = self.quality("default-budget", DEFAULT_BUDGET_SETTINGS, DEFAULT_BUDGET_RECIPES)
         return self.grid_lines("default-budget", bench, DEFAULT_BUDGET_NOTE)
+
+    def distillation_lines(self) -> List[str]:
+        bench = self.quality("distillation-weight", QUALITY_SETTINGS, DISTILLATION_RECIPES)
+        return self.grid_lines("distillation-weight", bench, DISTILLATION_NOTE)
 
     def grid_lines(self, name: str, bench: quality.QualityBenchmark, note: str) -> List[str]:
         """Section `name`: the tables of a quality grid without a plot, under its command and provenance."""
