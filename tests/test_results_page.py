@@ -7,7 +7,7 @@ from typing import List
 
 import pytest
 
-from continual_nerf.bench import results
+from continual_nerf.bench import quality, results
 from continual_nerf.bench.results import HEADER, SECTION_TITLES, SECTIONS, Results
 
 
@@ -99,3 +99,18 @@ def test_provenance_names_the_commits_runs_were_trained_at_once_each() -> None:
     assert "2 run(s) at once" in line
     assert "runs trained" not in Results().provenance([])
     assert results.grid_commits([]) == []
+
+
+def test_every_grid_section_names_recipes_the_quality_benchmark_knows() -> None:
+    sections = {
+        "quality": results.QUALITY_RECIPES,
+        "default-budget": results.DEFAULT_BUDGET_RECIPES,
+        "distillation-weight": results.DISTILLATION_RECIPES,
+        "depth": results.DEPTH_RECIPES,
+        "sweep": results.SWEEP_RECIPES,
+    }
+    for name, recipes in sections.items():
+        unknown = set(recipes) - set(quality.RECIPES)
+        assert not unknown, f"section {name}: {unknown} are not the quality benchmark's recipes"
+    # the task-count sweep prices replay by distillation against keeping every pixel at every task count
+    assert {"continual-ngp", "every pixel kept"} <= set(results.SWEEP_RECIPES)
