@@ -241,16 +241,16 @@ class Results:
     def depth_lines(self) -> List[str]:
         bench = self.quality("depth", DEPTH_SETTINGS, DEPTH_RECIPES)
         results = bench.measure()
+        provenance = self.provenance(grid_commits(results.values()))  # before the plot changes the checkout
         quality.plot_quality(with_tasks(results, DEPTH_PLOT_TASKS), self.docs.parent / DEPTH_PLOT)
-        provenance = self.provenance(grid_commits(results.values()))
         lines = quality_section(bench, results, SECTION_TITLES["depth"], DEPTH_NOTE, provenance)
         return [*lines, f"![Final mean PSNR against iterations per task, with and without depth]({DEPTH_PLOT})", ""]
 
     def sweep_lines(self) -> List[str]:
         bench = self.quality("sweep", SWEEP_SETTINGS, SWEEP_RECIPES, ("long-street",))
         results = bench.measure()
+        provenance = self.provenance(grid_commits(results.values()))  # before the plot changes the checkout
         quality.plot_quality(results, self.docs.parent / SWEEP_PLOT)
-        provenance = self.provenance(grid_commits(results.values()))
         lines = quality_section(bench, results, SECTION_TITLES["sweep"], SWEEP_NOTE, provenance)
         return [*lines, f"![Final mean PSNR against the number of tasks on the long street]({SWEEP_PLOT})", ""]
 
