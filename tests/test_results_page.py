@@ -114,3 +114,21 @@ def test_every_grid_section_names_recipes_the_quality_benchmark_knows() -> None:
         assert not unknown, f"section {name}: {unknown} are not the quality benchmark's recipes"
     # the task-count sweep prices replay by distillation against keeping every pixel at every task count
     assert {"continual-ngp", "every pixel kept"} <= set(results.SWEEP_RECIPES)
+
+
+class FinishedGrid:
+    def measure(self) -> dict:
+        return {"long-street": {}}
+
+
+@pytest.mark.parametrize("section", ["depth", "sweep"])
+def test_a_section_names_its_commit_before_its_plot_changes_the_checkout(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, section: str
+) -> None:
+    calls: List[str] = []
+    monkeypatch.setattr(Results, "quality", lambda _self, *args: FinishedGrid())
+    monkeypatch.setattr(quality, "plot_quality", lambda *args: calls.append("plot"))
+    monkeypatch.setattr(Results, "provenance", lambda _self, commits: calls.append("provenance") or "provenance")
+    monkeypatch.setattr(results, "quality_section", lambda *args: [])
+    getattr(Results(docs=tmp_path / "results.md"), f"{section}_lines")()
+    assert calls == ["provenance", "plot"], "a plot written first would make every section's commit read -dirty"
