@@ -116,17 +116,12 @@ def test_every_grid_section_names_recipes_the_quality_benchmark_knows() -> None:
     assert {"continual-ngp", "every pixel kept"} <= set(results.SWEEP_RECIPES)
 
 
-class FinishedGrid:
-    def measure(self) -> dict:
-        return {"long-street": {}}
-
-
 @pytest.mark.parametrize("section", ["depth", "sweep"])
 def test_a_section_names_its_commit_before_its_plot_changes_the_checkout(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, section: str
 ) -> None:
     calls: List[str] = []
-    monkeypatch.setattr(Results, "quality", lambda _self, *args: FinishedGrid())
+    monkeypatch.setattr(Results, "quality", lambda _self, *args: FinishedQuality())
     monkeypatch.setattr(quality, "plot_quality", lambda *args: calls.append("plot"))
     monkeypatch.setattr(Results, "provenance", lambda _self, commits: calls.append("provenance") or "provenance")
     monkeypatch.setattr(results, "quality_section", lambda *args: [])
