@@ -74,6 +74,14 @@ def test_every_runs_options_reach_the_method_and_the_demo_beside_the_recipes_own
     assert (demo.exposure_strength, demo.num_frames) == (0.3, 30)
 
 
+def test_a_recipe_that_sets_its_rays_per_batch_trains_with_them_and_the_others_with_the_benchmarks(tmp_path: Path):
+    bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out", rays_per_batch=256)
+    more_replay = config_of(bench, Recipe.of("more replay", RECIPES["continual-ngp, 3x replayed rays"]))
+    assert more_replay.pipeline.datamanager.train_num_rays_per_batch == 2048
+    assert more_replay.pipeline.datamanager.current_task_fraction == 0.25
+    assert config_of(bench, Recipe.of("plain", "continual-ngp")).pipeline.datamanager.train_num_rays_per_batch == 256
+
+
 def test_options_are_put_before_and_after_the_demo_subcommand():
     assert with_options(["continual-ngp", "--a", "1"], ["--b 2"]) == ["continual-ngp", "--a", "1", "--b", "2"]
     assert with_options(["m", "continual-demo", "--x", "1"], ["--b 2 continual-demo --y 3", "--c 4"]) == [

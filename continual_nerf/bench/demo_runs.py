@@ -25,7 +25,8 @@ class DemoBenchmark:
     """Options every benchmark that trains on the demo scenes has."""
 
     rays_per_batch: int = 1024
-    """Rays per training batch (the paper's 1024)."""
+    """Rays per training batch (the paper's 1024); a grid recipe that sets
+    --pipeline.datamanager.train-num-rays-per-batch trains with its own."""
     device: Device = "cpu"
     """Device every run trains on."""
     data: Path = Path("data/continual-demo")
