@@ -153,7 +153,7 @@ def matrix_of(rows: list) -> AccuracyMatrix:
     return matrix
 
 
-def test_a_finished_run_is_read_back_and_one_of_other_arguments_is_refused(tmp_path: Path):
+def test_a_finished_run_is_read_back_and_one_of_other_arguments_or_rays_per_batch_is_refused(tmp_path: Path):
     bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
     (run,) = bench.runs("room", Setting.parse("2x3"), [Recipe.of("a", "continual-ngp")])
     summary = RunSummary.of(matrix_of([[30.0], [29.0, 32.0]]), train_seconds=1.0)
@@ -164,6 +164,9 @@ def test_a_finished_run_is_read_back_and_one_of_other_arguments_is_refused(tmp_p
     other = bench.runs("room", Setting.parse("2x3"), [Recipe.of("a", "continual-ngp-paper")])
     with pytest.raises(SystemExit, match="trained as `continual-ngp`, not `continual-ngp-paper`; choose another"):
         bench.summaries(other)
+    more_rays = dataclasses.replace(bench, rays_per_batch=2048)
+    with pytest.raises(SystemExit, match="trained with 1024 rays per batch, not 2048; choose another --output-dir"):
+        more_rays.summaries([run])
 
 
 def test_throughput_times_the_variants_beside_its_own_configurations(tmp_path: Path):
@@ -307,4 +310,4 @@ def test_a_run_records_the_commit_checked_out_when_it_started_not_when_it_finish
     (run,) = bench.runs("room", Setting.parse("1x2"), [Recipe.of("a", "continual-ngp")])
     grid.train_run(run, bench.config(run))
     assert checked_out[-1] == "committed while it trained", "the run trained through the patched trainer"
-    assert grid.read_summary(run).commit == "started"
+    assert grid.read_summary(run, 32).commit == "started"

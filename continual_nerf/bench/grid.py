@@ -312,27 +312,43 @@ class Grid(DemoBenchmark):
     def summaries(self, runs: Sequence[Run]) -> List[RunSummary]:
         """Every run's summary: read back where it finished before, trained otherwise, each in a fresh process of its
         own (`--jobs` at once), so that its memory is its own."""
-        pending = [run for run in runs if finished(run) is None]
-        configs = [self.config(run) for run in pending]  # every recipe is checked before anything trains
+        configs = [self.config(run) for run in runs]  # every recipe is checked before anything trains
+        rays = [rays_per_batch(config) for config in configs]
+        pending = [(run, config) for run, config, r in zip(runs, configs, rays) if finished(run, r) is None]
         if pending:
             with run_pool(self.jobs) as pool:
-                list(pool.map(train_run, pending, configs))
-        return [read_summary(run) for run in runs]
+                list(pool.map(train_run, *zip(*pending)))
+        return [read_summary(run, r) for run, r in zip(runs, rays)]
 
 
-def finished(run: Run) -> Optional[RunSummary]:
-    """The run's summary if it finished with the same arguments; a folder trained with others is refused."""
+OLDER_RUNS_RAYS = 1024
+"""Rays per batch of a run whose summary predates recording them: every benchmark's default then."""
+
+
+def rays_per_batch(config: ContinualTrainerConfig) -> int:
+    """The rays of each training batch of a run of `config`."""
+    return config.pipeline.datamanager.train_num_rays_per_batch
+
+
+def finished(run: Run, rays: int) -> Optional[RunSummary]:
+    """The run's summary if it finished with the same arguments and `rays` per batch; a folder trained otherwise is
+    refused."""
     if not run.summary_path.exists():
         return None
-    return read_summary(run)
+    return read_summary(run, rays)
 
 
-def read_summary(run: Run) -> RunSummary:
+def read_summary(run: Run, rays: int) -> RunSummary:
     saved = json.loads(run.summary_path.read_text())
     if tuple(saved.get("arguments", ())) != run.arguments:
         raise SystemExit(
             f"{run.summary_path}: trained as `{shlex.join(saved.get('arguments', []))}`, not "
             f"`{shlex.join(run.arguments)}`; choose another --output-dir"
+        )
+    trained_rays = saved.get("rays_per_batch", OLDER_RUNS_RAYS)
+    if trained_rays != rays:
+        raise SystemExit(
+            f"{run.summary_path}: trained with {trained_rays} rays per batch, not {rays}; choose another --output-dir"
         )
     return RunSummary(**saved["summary"])
 
@@ -369,5 +385,9 @@ def train_run(run: Run, config: ContinualTrainerConfig) -> None:
     matrix = AccuracyMatrix.read(config.get_base_dir() / ACCURACY_MATRIX_FILENAME)
     extras = run.recipe.measure(trainer) if run.recipe.measure is not None else {}
     summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, tasks, extras, commit)
-    saved = {"arguments": list(run.arguments), "summary": dataclasses.asdict(summary)}
+    saved = {
+        "arguments": list(run.arguments),
+        "rays_per_batch": rays_per_batch(config),
+        "summary": dataclasses.asdict(summary),
+    }
     write_text_atomically(run.summary_path, json.dumps(saved, indent=1))
