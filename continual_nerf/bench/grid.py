@@ -304,10 +304,10 @@ class Grid(DemoBenchmark):
     def rays_of(self, config: ContinualTrainerConfig, method: str) -> int:
         """A run's rays per batch: the benchmark's, unless its recipe sets its own (`config`, parsed from the recipe,
         differs there from its registered `method`)."""
-        own = config.pipeline.datamanager.train_num_rays_per_batch
         registered = all_methods[method]
         assert isinstance(registered, ContinualTrainerConfig), "recipe_config parsed the recipe's method"
-        return own if own != registered.pipeline.datamanager.train_num_rays_per_batch else self.rays_per_batch
+        own = rays_per_batch(config)
+        return own if own != rays_per_batch(registered) else self.rays_per_batch
 
     def summaries(self, runs: Sequence[Run]) -> List[RunSummary]:
         """Every run's summary: read back where it finished before, trained otherwise, each in a fresh process of its
