@@ -80,6 +80,9 @@ def test_a_recipe_that_sets_its_rays_per_batch_trains_with_them_and_the_others_w
     assert more_replay.pipeline.datamanager.train_num_rays_per_batch == 2048
     assert more_replay.pipeline.datamanager.current_task_fraction == 0.25
     assert config_of(bench, Recipe.of("plain", "continual-ngp")).pipeline.datamanager.train_num_rays_per_batch == 256
+    # the registered method's own number, asked for outright, wins over the benchmark's too
+    paper_batch = Recipe.of("paper batch", "continual-ngp --pipeline.datamanager.train-num-rays-per-batch 1024")
+    assert config_of(bench, paper_batch).pipeline.datamanager.train_num_rays_per_batch == 1024
 
 
 def test_options_are_put_before_and_after_the_demo_subcommand():

@@ -88,7 +88,7 @@ def test_the_changed_scene_walks_twice_and_the_bounds_train_the_budget_of_both_s
     )
 
 
-def test_a_variant_adds_two_sessions_whose_later_one_alone_has_its_options(tmp_path):
+def test_a_variant_adds_two_sessions_whose_later_one_alone_has_its_options_and_rays_per_batch(tmp_path):
     variant = "fraction=continual-ngp --pipeline.datamanager.current-task-fraction 0.75"
     benchmark = dataclasses.replace(bench(tmp_path), variants=(variant,))
     runs = {run.name: run for run in benchmark.changed_runs("room", "object-moved")}
@@ -96,7 +96,14 @@ def test_a_variant_adds_two_sessions_whose_later_one_alone_has_its_options(tmp_p
     assert first.pipeline.datamanager.current_task_fraction == 0.5, "the first session is continual-ngp's"
     assert later.pipeline.datamanager.current_task_fraction == 0.75 and later.pipeline.continue_with_new_capture
     assert later.load_dir == first.get_checkpoint_dir()
+    assert first.pipeline.datamanager.train_num_rays_per_batch == benchmark.rays_per_batch
+    assert later.pipeline.datamanager.train_num_rays_per_batch == benchmark.rays_per_batch
     assert "--variants" in benchmark.command() and variant in benchmark.command_arguments()
+    rays = dataclasses.replace(
+        benchmark, variants=("rays=continual-ngp --pipeline.datamanager.train-num-rays-per-batch 64",)
+    )
+    more_rays = {run.name: run for run in rays.changed_runs("room", "object-moved")}["rays"]
+    assert rays.session_config(more_rays, 1).pipeline.datamanager.train_num_rays_per_batch == 64, "the variant's own"
     taken = dataclasses.replace(benchmark, variants=("continual-ngp=continual-ngp --machine.seed 4",))
     with pytest.raises(SystemExit, match="--variants continual-ngp: a run of the benchmark has that name"):
         taken.changed_runs("room", "object-moved")

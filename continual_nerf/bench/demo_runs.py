@@ -6,7 +6,7 @@ import copy
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Literal, Sequence
+from typing import Any, Iterable, Literal, Optional, Sequence
 
 import tyro
 from nerfstudio.configs.method_configs import all_methods, method_configs as nerfstudio_methods
@@ -41,21 +41,26 @@ def check_names(option: str, chosen: Iterable[str], known: Iterable[str]) -> Non
         raise SystemExit(f"--{option}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
 
 
-def recipe_config(arguments: Sequence[str], option: str) -> ContinualTrainerConfig:
+def recipe_config(
+    arguments: Sequence[str], option: str, rays_per_batch: Optional[int] = None
+) -> ContinualTrainerConfig:
     """The config `ns-train METHOD OPTIONS` would train, for `arguments` = METHOD OPTIONS (a registered continual
     method, its options and optionally a dataparser subcommand with its own); bad ones end with one line naming
-    `option`."""
+    `option`. `rays_per_batch` replaces the method's rays per batch, and the options may set their own over it."""
     if not arguments:
         raise SystemExit(f"{option}: no method given")
     method, options = arguments[0], list(arguments[1:])
     base = all_methods.get(method)
     if not isinstance(base, ContinualTrainerConfig):
         raise SystemExit(f"{option}: {method} is not a registered continual method")
+    base = copy.deepcopy(base)
+    if rays_per_batch is not None:
+        base.pipeline.datamanager.train_num_rays_per_batch = rays_per_batch
     try:
         # as ns-train parses: booleans take a value (--pipeline.model.use-color-transform True)
         return tyro.cli(
             tyro.conf.FlagConversionOff[ContinualTrainerConfig],  # type: ignore[valid-type]
-            default=copy.deepcopy(base),
+            default=base,
             args=options,
             console_outputs=False,
         )

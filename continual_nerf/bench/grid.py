@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
-from nerfstudio.configs.method_configs import all_methods
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -282,7 +281,8 @@ class Grid(DemoBenchmark):
 
     def config(self, run: Run) -> ContinualTrainerConfig:
         """The run's ns-train config on its demo scene, with the setting's tasks and budget."""
-        config = recipe_config(run.arguments, option=f"recipe {run.recipe.name!r}")
+        # the benchmark's rays per batch, unless the recipe sets its own
+        config = recipe_config(run.arguments, f"recipe {run.recipe.name!r}", rays_per_batch=self.rays_per_batch)
         demo = config.pipeline.datamanager.dataparser
         if not isinstance(demo, ContinualDemoDataParserConfig):
             raise SystemExit(f"recipe {run.recipe.name!r}: the benchmark trains on {DEMO}, not another dataparser")
@@ -296,18 +296,9 @@ class Grid(DemoBenchmark):
             num_tasks=run.setting.num_tasks,
             iterations_per_task=run.setting.iterations or 1,  # unused when the tasks are timed
             seconds_per_task=run.setting.seconds,
-            train_num_rays_per_batch=self.rays_of(config, run.arguments[0]),
         )
         config.save_only_latest_checkpoint = True
         return config
-
-    def rays_of(self, config: ContinualTrainerConfig, method: str) -> int:
-        """A run's rays per batch: the benchmark's, unless its recipe sets its own (`config`, parsed from the recipe,
-        differs there from its registered `method`)."""
-        registered = all_methods[method]
-        assert isinstance(registered, ContinualTrainerConfig), "recipe_config parsed the recipe's method"
-        own = rays_per_batch(config)
-        return own if own != rays_per_batch(registered) else self.rays_per_batch
 
     def summaries(self, runs: Sequence[Run]) -> List[RunSummary]:
         """Every run's summary: read back where it finished before, trained otherwise, each in a fresh process of its

@@ -240,7 +240,7 @@ class SessionsBenchmark(DemoBenchmark):
         """Session `index` of `run` as ns-train would train it, on its own copy of the demo capture, continuing the
         session before it."""
         session = run.sessions[index]
-        config = recipe_config(session.arguments, option=f"run {run.name!r}")
+        config = recipe_config(session.arguments, f"run {run.name!r}", rays_per_batch=self.rays_per_batch)
         demo = dataclasses.replace(
             self.demo_base(run.scene),
             data=run.data_dir(index),
@@ -254,7 +254,6 @@ class SessionsBenchmark(DemoBenchmark):
             dataparser=demo,
             num_tasks=session.num_tasks,
             iterations_per_task=session.iterations_per_task or self.iterations_per_task,
-            train_num_rays_per_batch=self.rays_per_batch,
         )
         config.timestamp = "run"
         if index > 0:
