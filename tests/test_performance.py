@@ -17,11 +17,12 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from PIL import Image
 
-from continual_nerf.bench.memory import train_recording_memory
+from continual_nerf.bench.memory import MemoryBenchmark, train_recording_memory
 from continual_nerf.compilation import CompiledForward, warm_up
 from continual_nerf.core.continual_pipeline import ContinualPipeline
 from continual_nerf.core.ngp_model import ContinualNGPModel, ContinualNGPModelConfig
 from continual_nerf.core.replay_oracle import ReplayOracle
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 from continual_nerf.dataparsers.ordered_capture_dataparser import OrderedCaptureDataParserConfig
 from continual_nerf.errors import ContinualConfigError
 from continual_nerf.recipes import small_model
@@ -195,3 +196,12 @@ def test_compilation_failure_falls_back_to_eager_with_one_line(monkeypatch, caps
     assert len(notices) == 1 and "cc not found" in notices[0] and "running the model eager" in notices[0]
     for name in expected:
         torch.testing.assert_close(actual[name], expected[name], rtol=0, atol=0, msg=f"{name} differs")
+
+
+def test_the_memory_benchmark_trains_on_the_scene_it_is_given(tmp_path):
+    benchmark = MemoryBenchmark(scene="long-street", num_tasks=40, data=tmp_path / "demo", output_dir=tmp_path / "out")
+    config = benchmark.trainer_config()
+    demo = config.pipeline.datamanager.dataparser
+    assert isinstance(demo, ContinualDemoDataParserConfig)
+    assert (demo.scene, demo.num_frames, demo.data) == ("long-street", None, tmp_path / "demo")
+    assert config.pipeline.datamanager.num_tasks == 40

@@ -1,6 +1,6 @@
 """Memory of a continual run, task by task: what a flat memory in the number of tasks is checked against.
 
-    python -m continual_nerf.bench.memory [--num-tasks 20] [--iterations-per-task 10] [--output memory.json]
+    python -m continual_nerf.bench.memory [--scene room] [--num-tasks 20] [--iterations-per-task 10] [--output memory.json]
 
 trains continual-ngp on the demo scene (all its defaults, the replay oracle included) and prints, after
 every task, the peak and current resident memory of the process and the bytes of all live tensors.
@@ -27,7 +27,7 @@ from torch._subclasses.fake_tensor import FakeTensor
 
 from continual_nerf.bench.demo_runs import on_demo
 from continual_nerf.core.continual_trainer import ContinualTrainer, ContinualTrainerConfig
-from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
+from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig, DemoScene
 from continual_nerf.method_configs import CONTINUAL_NGP
 from continual_nerf.recipes import set_up_like_ns_train
 
@@ -115,8 +115,10 @@ class MemoryBenchmark:
     """Number of tasks; the demo trajectory is cut into this many equal spans."""
     iterations_per_task: int = 10
     """Training iterations per task."""
-    num_frames: int = 120
-    """Frames of the demo trajectory (at least 2 per task: one trains, one tests)."""
+    scene: DemoScene = "room"
+    """Demo scene to train on (long-street: the long capture, 480 frames)."""
+    num_frames: Optional[int] = None
+    """Frames of the demo trajectory (at least 2 per task: one trains, one tests); None: the scene's own."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Device to train on."""
     data: Path = Path("data/continual-demo")
@@ -127,7 +129,7 @@ class MemoryBenchmark:
     """JSON file to write the per-task records to (for the performance benchmark)."""
 
     def trainer_config(self) -> ContinualTrainerConfig:
-        demo = ContinualDemoDataParserConfig(data=self.data, num_frames=self.num_frames)
+        demo = ContinualDemoDataParserConfig(data=self.data, scene=self.scene, num_frames=self.num_frames)
         options = {"num_tasks": self.num_tasks, "iterations_per_task": self.iterations_per_task}
         return on_demo(CONTINUAL_NGP, demo, self.device, self.output_dir, **options)
 
