@@ -17,6 +17,7 @@ import re
 import signal
 import sys
 import threading
+import time
 import warnings
 import weakref
 from contextlib import ExitStack, contextmanager
@@ -541,7 +542,19 @@ def stop_rendering(viewer: Viewer) -> None:
         machine.interrupt_render_flag = True
         machine.render_trigger.set()
     for machine in machines:
-        machine.join(timeout=RENDER_STOP_SECONDS)
+        if has_started(machine, RENDER_STOP_SECONDS):  # once started it sees `running` off and ends
+            machine.join(timeout=RENDER_STOP_SECONDS)
+
+
+def has_started(thread: threading.Thread, seconds: float) -> bool:
+    """Whether `thread` has started, waiting up to `seconds` for it: nerfstudio's Viewer.handle_new_client stores a
+    browser's render thread in `render_statemachines` before it starts it, and a thread not started cannot be joined."""
+    deadline = time.monotonic() + seconds
+    while thread.ident is None:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def show_step(viewer: Viewer, step: int) -> None:

@@ -239,6 +239,28 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+class RenderThread(threading.Thread):
+    """What stop_rendering reads of nerfstudio's RenderStateMachine: a loop that runs while `running`."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.running, self.interrupt_render_flag, self.render_trigger = True, False, threading.Event()
+
+    def run(self) -> None:
+        while self.running:
+            self.render_trigger.wait(0.05)
+
+
+def test_a_render_thread_stored_but_not_yet_started_is_stopped_once_it_starts():
+    # a browser connecting as the run ends: nerfstudio stores its render thread first and starts it a moment later
+    late, running = RenderThread(), RenderThread()
+    running.start()
+    viewer = mock.Mock(render_statemachines={1: late, 2: running})
+    threading.Timer(0.2, late.start).start()
+    compat.stop_rendering(viewer)
+    assert late.ident is not None and not late.is_alive() and not running.is_alive()
+
+
 def test_viewer_internals_the_panel_uses(tmp_path):
     config = tiny_config(tmp_path / "outputs", demo_parser(), num_tasks=2, iterations_per_task=2)
     config.vis = "viewer"
