@@ -21,6 +21,7 @@ from continual_nerf.bench.sessions import (
     run_commits,
     split_rows,
     views_between_frames,
+    write_measures,
 )
 from continual_nerf.dataparsers.continual_demo_dataparser import ContinualDemoDataParserConfig
 
@@ -120,16 +121,25 @@ def test_runs_names_the_runs_trained_and_tabulated_and_refuses_others(tmp_path):
         unknown.measure()
 
 
-def test_a_run_is_read_back_only_when_trained_with_the_same_arguments(tmp_path):
+def test_a_run_is_read_back_only_when_trained_with_the_same_arguments_and_rays_per_batch(tmp_path):
     benchmark = bench(tmp_path)
-    run = benchmark.split_runs("room")[0]
-    assert read_measures(run) is None
+    run = benchmark.split_runs("room")[1]
+    assert read_measures(run, [1024, 1024]) is None
     run.folder.mkdir(parents=True)
-    (run.folder / MEASURES_FILENAME).write_text(json.dumps({"arguments": run.arguments, "measures": {"x": 1}}))
-    assert read_measures(run) == {"x": 1}
-    (run.folder / MEASURES_FILENAME).write_text(json.dumps({"arguments": [], "measures": {"x": 1}}))
+    measures = run.folder / MEASURES_FILENAME
+    measures.write_text(json.dumps({"arguments": run.arguments, "measures": {"x": 1}}))
+    assert read_measures(run, [1024, 1024]) == {"x": 1}, "a file older than its rays were saved: the default 1024"
+    with pytest.raises(SystemExit, match=rf"{MEASURES_FILENAME}: sessions trained with \[1024, 1024\] rays per batch"):
+        read_measures(run, [1024, 2048])
+    configs = [benchmark.session_config(run, index) for index in range(2)]
+    configs[1].pipeline.datamanager.train_num_rays_per_batch = 2048
+    write_measures(run, configs, {"x": 2})
+    assert read_measures(run, [1024, 2048]) == {"x": 2}, "each session's own rays are kept"
+    with pytest.raises(SystemExit, match="not \\[2048, 2048\\]; choose another --output-dir"):
+        read_measures(run, [2048, 2048])
+    measures.write_text(json.dumps({"arguments": [], "measures": {"x": 1}}))
     with pytest.raises(SystemExit, match="trained with other arguments"):
-        read_measures(run)
+        read_measures(run, [1024, 1024])
 
 
 def test_the_tables_say_whether_each_target_is_met():

@@ -42,7 +42,15 @@ from rich.table import Table
 
 from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names, recipe_config
-from continual_nerf.bench.grid import DEMO, folder_name, parse_recipe, source_commit, with_options
+from continual_nerf.bench.grid import (
+    DEMO,
+    OLDER_RUNS_RAYS,
+    folder_name,
+    parse_recipe,
+    rays_per_batch,
+    source_commit,
+    with_options,
+)
 from continual_nerf.bench.run_pool import run_pool
 from continual_nerf.core.accuracy_matrix import ACCURACY_MATRIX_FILENAME, AccuracyMatrix
 from continual_nerf.core.continual_datamanager import ContinualDataManager
@@ -272,14 +280,15 @@ class SessionsBenchmark(DemoBenchmark):
                 runs += [run for change in self.changes for run in self.changed_runs(scene, change)]
         check_names("runs", self.runs, dict.fromkeys(run.name for run in runs))
         runs = [run for run in runs if not self.runs or run.name in self.runs]
-        pending = [run for run in runs if read_measures(run) is None]
-        configs = [[self.session_config(run, i) for i in range(len(run.sessions))] for run in pending]
+        configs = [[self.session_config(run, i) for i in range(len(run.sessions))] for run in runs]
+        rays = [[rays_per_batch(config) for config in sessions] for sessions in configs]
+        pending = [(run, c) for run, c, r in zip(runs, configs, rays) if read_measures(run, r) is None]
         if pending:
             with run_pool(self.jobs) as pool:
-                list(pool.map(train_and_measure, pending, configs))
+                list(pool.map(train_and_measure, *zip(*pending)))
         results: Dict[str, Any] = {}
-        for run in runs:
-            measures = read_measures(run)
+        for run, r in zip(runs, rays):
+            measures = read_measures(run, r)
             assert measures is not None, f"{run.folder}: trained above"
             results.setdefault(run.scene, {}).setdefault(run.experiment, {})[run.name] = measures
         return results
@@ -335,18 +344,33 @@ def train_and_measure(run: Run, configs: Sequence[ContinualTrainerConfig]) -> No
         measures = changed_measures(configs)
     measures["train_seconds"] = seconds[-1]
     measures["commit"] = commit
-    saved = {"arguments": run.arguments, "measures": measures}
+    write_measures(run, configs, measures)
+
+
+def write_measures(run: Run, configs: Sequence[ContinualTrainerConfig], measures: Dict[str, Any]) -> None:
+    """Keep `run`'s measures with what its sessions were trained with, for `read_measures` to check."""
+    saved = {
+        "arguments": run.arguments,
+        "rays_per_batch": [rays_per_batch(config) for config in configs],
+        "measures": measures,
+    }
     write_text_atomically(run.folder / MEASURES_FILENAME, json.dumps(saved, indent=1))
 
 
-def read_measures(run: Run) -> Optional[Dict[str, Any]]:
-    """The run's measures if it finished with the same arguments; a folder trained with others is refused."""
+def read_measures(run: Run, rays: Sequence[int]) -> Optional[Dict[str, Any]]:
+    """The run's measures if it finished with the same arguments and each session's `rays` per batch; a folder
+    trained otherwise is refused."""
     path = run.folder / MEASURES_FILENAME
     if not path.exists():
         return None
     saved = json.loads(path.read_text())
     if saved.get("arguments") != run.arguments:
         raise SystemExit(f"{path}: trained with other arguments than this benchmark's; choose another --output-dir")
+    trained_rays = saved.get("rays_per_batch", [OLDER_RUNS_RAYS] * len(run.sessions))
+    if trained_rays != list(rays):
+        raise SystemExit(
+            f"{path}: sessions trained with {trained_rays} rays per batch, not {list(rays)}; choose another --output-dir"
+        )
     return saved["measures"]
 
 
