@@ -156,7 +156,7 @@ def matrix_of(rows: list) -> AccuracyMatrix:
     return matrix
 
 
-def test_a_finished_run_is_read_back_and_one_of_other_arguments_or_rays_per_batch_is_refused(tmp_path: Path):
+def test_a_finished_run_is_read_back_and_one_of_other_arguments_rays_per_batch_or_device_is_refused(tmp_path: Path):
     bench = QualityBenchmark(data=tmp_path / "demo", output_dir=tmp_path / "out")
     (run,) = bench.runs("room", Setting.parse("2x3"), [Recipe.of("a", "continual-ngp")])
     summary = RunSummary.of(matrix_of([[30.0], [29.0, 32.0]]), train_seconds=1.0)
@@ -168,8 +168,12 @@ def test_a_finished_run_is_read_back_and_one_of_other_arguments_or_rays_per_batc
     with pytest.raises(SystemExit, match="trained as `continual-ngp`, not `continual-ngp-paper`; choose another"):
         bench.summaries(other)
     more_rays = dataclasses.replace(bench, rays_per_batch=2048)
-    with pytest.raises(SystemExit, match="trained with 1024 rays per batch, not 2048; choose another --output-dir"):
+    with pytest.raises(
+        SystemExit, match="trained with 1024 rays per batch on cpu, not 2048 rays per batch on cpu; choo"
+    ):
         more_rays.summaries([run])
+    with pytest.raises(SystemExit, match="summary.json: trained with 1024 rays per batch on cpu, not 1024 .* on cuda"):
+        dataclasses.replace(bench, device="cuda").summaries([run])
 
 
 def test_throughput_times_the_variants_beside_its_own_configurations(tmp_path: Path):
@@ -313,4 +317,4 @@ def test_a_run_records_the_commit_checked_out_when_it_started_not_when_it_finish
     (run,) = bench.runs("room", Setting.parse("1x2"), [Recipe.of("a", "continual-ngp")])
     grid.train_run(run, bench.config(run))
     assert checked_out[-1] == "committed while it trained", "the run trained through the patched trainer"
-    assert grid.read_summary(run, 32).commit == "started"
+    assert grid.read_summary(run, {"rays_per_batch": 32, "device": "cpu"}).commit == "started"

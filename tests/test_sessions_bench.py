@@ -121,25 +121,29 @@ def test_runs_names_the_runs_trained_and_tabulated_and_refuses_others(tmp_path):
         unknown.measure()
 
 
-def test_a_run_is_read_back_only_when_trained_with_the_same_arguments_and_rays_per_batch(tmp_path):
+def test_a_run_is_read_back_only_when_trained_with_the_same_arguments_rays_per_batch_and_device(tmp_path):
     benchmark = bench(tmp_path)
     run = benchmark.split_runs("room")[1]
-    assert read_measures(run, [1024, 1024]) is None
+    on_cpu = [{"rays_per_batch": 1024, "device": "cpu"}] * 2
+    assert read_measures(run, on_cpu) is None
     run.folder.mkdir(parents=True)
     measures = run.folder / MEASURES_FILENAME
     measures.write_text(json.dumps({"arguments": run.arguments, "measures": {"x": 1}}))
-    assert read_measures(run, [1024, 1024]) == {"x": 1}, "a file older than its rays were saved: the default 1024"
-    with pytest.raises(SystemExit, match=rf"{MEASURES_FILENAME}: sessions trained with \[1024, 1024\] rays per batch"):
-        read_measures(run, [1024, 2048])
+    assert read_measures(run, on_cpu) == {"x": 1}, "a file older than its training was recorded: 1024 rays on the cpu"
+    more_rays = [on_cpu[0], {"rays_per_batch": 2048, "device": "cpu"}]
+    with pytest.raises(SystemExit, match=f"{MEASURES_FILENAME}: trained with 1024 rays per batch on cpu; 1024 rays"):
+        read_measures(run, more_rays)
     configs = [benchmark.session_config(run, index) for index in range(2)]
     configs[1].pipeline.datamanager.train_num_rays_per_batch = 2048
     write_measures(run, configs, {"x": 2})
-    assert read_measures(run, [1024, 2048]) == {"x": 2}, "each session's own rays are kept"
-    with pytest.raises(SystemExit, match="not \\[2048, 2048\\]; choose another --output-dir"):
-        read_measures(run, [2048, 2048])
+    assert read_measures(run, more_rays) == {"x": 2}, "each session's own rays are kept"
+    with pytest.raises(
+        SystemExit, match="not 1024 rays per batch on cuda; 2048 rays per batch on cuda; choose another"
+    ):
+        read_measures(run, [{**session, "device": "cuda"} for session in more_rays])
     measures.write_text(json.dumps({"arguments": [], "measures": {"x": 1}}))
     with pytest.raises(SystemExit, match="trained with other arguments"):
-        read_measures(run, [1024, 1024])
+        read_measures(run, on_cpu)
 
 
 def test_the_tables_say_whether_each_target_is_met():

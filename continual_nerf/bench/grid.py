@@ -4,8 +4,9 @@ the demo scenes, each run trained through nerfstudio's Trainer once and read bac
 A recipe is what a user would type after `ns-train`: a registered continual method, its options, and optionally
 `continual-demo` with the demo's options (`continual-ngp --pipeline.model.use-color-transform True continual-demo
 --exposure-strength 0.3`). The grid sets what it varies itself: the scene, the number of tasks and the budget per
-task, the rays per batch and the device. A run's folder keeps `summary.json` with the arguments it was trained with;
-a later benchmark reads a finished run back when it asks for the same arguments and refuses the folder otherwise.
+task, the rays per batch and the device. A run's folder keeps `summary.json` with the arguments, rays per batch and
+device it was trained with; a later benchmark reads a finished run back when it asks for the same and refuses the
+folder otherwise.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import shlex
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -304,43 +305,60 @@ class Grid(DemoBenchmark):
         """Every run's summary: read back where it finished before, trained otherwise, each in a fresh process of its
         own (`--jobs` at once), so that its memory is its own."""
         configs = [self.config(run) for run in runs]  # every recipe is checked before anything trains
-        rays = [rays_per_batch(config) for config in configs]
-        pending = [(run, config) for run, config, r in zip(runs, configs, rays) if finished(run, r) is None]
+        expected = [trained_with(config) for config in configs]
+        pending = [(run, config) for run, config, e in zip(runs, configs, expected) if finished(run, e) is None]
         if pending:
             with run_pool(self.jobs) as pool:
                 list(pool.map(train_run, *zip(*pending)))
-        return [read_summary(run, r) for run, r in zip(runs, rays)]
+        return [read_summary(run, e) for run, e in zip(runs, expected)]
 
 
-OLDER_RUNS_RAYS = 1024
-"""Rays per batch of a run whose summary predates recording them: every benchmark's default then."""
+OLDER_RUNS: Dict[str, Any] = {"rays_per_batch": 1024, "device": "cpu"}
+"""What a run whose file predates recording it was trained with: every benchmark's defaults then."""
 
 
-def rays_per_batch(config: ContinualTrainerConfig) -> int:
-    """The rays of each training batch of a run of `config`."""
-    return config.pipeline.datamanager.train_num_rays_per_batch
+def trained_with(config: ContinualTrainerConfig) -> Dict[str, Any]:
+    """What a run of `config` is trained with that its arguments do not say: the benchmark's rays per batch (or the
+    recipe's own) and device."""
+    return {
+        "rays_per_batch": config.pipeline.datamanager.train_num_rays_per_batch,
+        "device": config.machine.device_type,
+    }
 
 
-def finished(run: Run, rays: int) -> Optional[RunSummary]:
-    """The run's summary if it finished with the same arguments and `rays` per batch; a folder trained otherwise is
+def recorded_training(saved: Dict[str, Any]) -> Dict[str, Any]:
+    """The rays per batch and device a run's file records, OLDER_RUNS' where the file predates them."""
+    return {key: saved.get(key, older) for key, older in OLDER_RUNS.items()}
+
+
+def refuse_other_training(path: Path, trained: Sequence[Dict[str, Any]], expected: Sequence[Dict[str, Any]]) -> None:
+    """One line naming `path` if a finished run (one record per session) was trained otherwise than `expected`."""
+    if list(trained) != list(expected):
+        raise SystemExit(
+            f"{path}: trained with {described(trained)}, not {described(expected)}; choose another --output-dir"
+        )
+
+
+def described(records: Sequence[Dict[str, Any]]) -> str:
+    return "; ".join(f"{record['rays_per_batch']} rays per batch on {record['device']}" for record in records)
+
+
+def finished(run: Run, expected: Dict[str, Any]) -> Optional[RunSummary]:
+    """The run's summary if it finished with the same arguments and `expected` training; a folder trained otherwise is
     refused."""
     if not run.summary_path.exists():
         return None
-    return read_summary(run, rays)
+    return read_summary(run, expected)
 
 
-def read_summary(run: Run, rays: int) -> RunSummary:
+def read_summary(run: Run, expected: Dict[str, Any]) -> RunSummary:
     saved = json.loads(run.summary_path.read_text())
     if tuple(saved.get("arguments", ())) != run.arguments:
         raise SystemExit(
             f"{run.summary_path}: trained as `{shlex.join(saved.get('arguments', []))}`, not "
             f"`{shlex.join(run.arguments)}`; choose another --output-dir"
         )
-    trained_rays = saved.get("rays_per_batch", OLDER_RUNS_RAYS)
-    if trained_rays != rays:
-        raise SystemExit(
-            f"{run.summary_path}: trained with {trained_rays} rays per batch, not {rays}; choose another --output-dir"
-        )
+    refuse_other_training(run.summary_path, [recorded_training(saved)], [expected])
     return RunSummary(**saved["summary"])
 
 
@@ -378,7 +396,7 @@ def train_run(run: Run, config: ContinualTrainerConfig) -> None:
     summary = RunSummary.of(matrix, trainer.pipeline.budget.total_seconds, tasks, extras, commit)
     saved = {
         "arguments": list(run.arguments),
-        "rays_per_batch": rays_per_batch(config),
+        **trained_with(config),
         "summary": dataclasses.asdict(summary),
     }
     write_text_atomically(run.summary_path, json.dumps(saved, indent=1))

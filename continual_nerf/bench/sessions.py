@@ -44,11 +44,12 @@ from continual_nerf.atomic_files import write_text_atomically
 from continual_nerf.bench.demo_runs import DemoBenchmark, check_names, recipe_config
 from continual_nerf.bench.grid import (
     DEMO,
-    OLDER_RUNS_RAYS,
     folder_name,
     parse_recipe,
-    rays_per_batch,
+    recorded_training,
+    refuse_other_training,
     source_commit,
+    trained_with,
     with_options,
 )
 from continual_nerf.bench.run_pool import run_pool
@@ -281,14 +282,14 @@ class SessionsBenchmark(DemoBenchmark):
         check_names("runs", self.runs, dict.fromkeys(run.name for run in runs))
         runs = [run for run in runs if not self.runs or run.name in self.runs]
         configs = [[self.session_config(run, i) for i in range(len(run.sessions))] for run in runs]
-        rays = [[rays_per_batch(config) for config in sessions] for sessions in configs]
-        pending = [(run, c) for run, c, r in zip(runs, configs, rays) if read_measures(run, r) is None]
+        expected = [[trained_with(config) for config in sessions] for sessions in configs]
+        pending = [(run, c) for run, c, e in zip(runs, configs, expected) if read_measures(run, e) is None]
         if pending:
             with run_pool(self.jobs) as pool:
                 list(pool.map(train_and_measure, *zip(*pending)))
         results: Dict[str, Any] = {}
-        for run, r in zip(runs, rays):
-            measures = read_measures(run, r)
+        for run, e in zip(runs, expected):
+            measures = read_measures(run, e)
             assert measures is not None, f"{run.folder}: trained above"
             results.setdefault(run.scene, {}).setdefault(run.experiment, {})[run.name] = measures
         return results
@@ -351,26 +352,23 @@ def write_measures(run: Run, configs: Sequence[ContinualTrainerConfig], measures
     """Keep `run`'s measures with what its sessions were trained with, for `read_measures` to check."""
     saved = {
         "arguments": run.arguments,
-        "rays_per_batch": [rays_per_batch(config) for config in configs],
+        "sessions": [trained_with(config) for config in configs],
         "measures": measures,
     }
     write_text_atomically(run.folder / MEASURES_FILENAME, json.dumps(saved, indent=1))
 
 
-def read_measures(run: Run, rays: Sequence[int]) -> Optional[Dict[str, Any]]:
-    """The run's measures if it finished with the same arguments and each session's `rays` per batch; a folder
-    trained otherwise is refused."""
+def read_measures(run: Run, expected: Sequence[Dict[str, Any]]) -> Optional[Dict[str, Any]]:
+    """The run's measures if it finished with the same arguments and each session's `expected` training (rays per
+    batch, device); a folder trained otherwise is refused."""
     path = run.folder / MEASURES_FILENAME
     if not path.exists():
         return None
     saved = json.loads(path.read_text())
     if saved.get("arguments") != run.arguments:
         raise SystemExit(f"{path}: trained with other arguments than this benchmark's; choose another --output-dir")
-    trained_rays = saved.get("rays_per_batch", [OLDER_RUNS_RAYS] * len(run.sessions))
-    if trained_rays != list(rays):
-        raise SystemExit(
-            f"{path}: sessions trained with {trained_rays} rays per batch, not {list(rays)}; choose another --output-dir"
-        )
+    trained = [recorded_training(session) for session in saved.get("sessions", [{}] * len(run.sessions))]
+    refuse_other_training(path, trained, expected)
     return saved["measures"]
 
 
