@@ -189,6 +189,24 @@ def test_throughput_times_the_variants_beside_its_own_configurations(tmp_path: P
     assert configs["continual-ngp"].pipeline.model.log2_hashmap_size == 17
 
 
+def test_throughput_times_a_variant_at_its_own_rays_per_batch_and_the_others_at_the_benchmarks(tmp_path: Path):
+    benchmark = ThroughputBenchmark(
+        data=tmp_path / "demo",
+        rays_per_batch=512,
+        variants=("3x=continual-ngp --pipeline.datamanager.train-num-rays-per-batch 2048", "same=continual-ngp"),
+    )
+    configs = benchmark.configs(tmp_path / "out")
+    rays = {name: config.pipeline.datamanager.train_num_rays_per_batch for name, config in configs.items()}
+    assert rays == {
+        "continual-ngp": 512,
+        "continual-ngp-paper": 512,
+        "continual-ngp-incre": 512,
+        "nerfacto": 512,
+        "3x": 2048,
+        "same": 512,
+    }
+
+
 def test_throughput_refuses_a_variant_named_as_its_own_configuration(tmp_path: Path):
     benchmark = ThroughputBenchmark(data=tmp_path / "demo", variants=("nerfacto=continual-ngp",))
     with pytest.raises(SystemExit, match="nerfacto: a configuration has that name already"):

@@ -35,8 +35,8 @@ REPLAY, PAPER, REPLAY_OFF, NERFACTO = "continual-ngp", "continual-ngp-paper", "c
 class Throughput:
     """Step times of every configuration, measured in the same turns."""
 
-    rays_per_batch: int
-    """Rays per training batch of every configuration."""
+    rays_per_batch: Dict[str, int] = field(default_factory=dict)
+    """Rays per training batch of each configuration."""
     first_step: Dict[str, float] = field(default_factory=dict)
     """Seconds of each configuration's first step, one-off costs (compilation) included."""
     steps: Dict[str, List[float]] = field(default_factory=dict)
@@ -52,15 +52,24 @@ class Throughput:
         return statistics.median(a / b for a, b in zip(self.steps[numerator], self.steps[denominator]))
 
     def report(self, device: str, num_tasks: int) -> None:
-        table = Table(title=f"Training throughput on {device}, {self.rays_per_batch} rays per batch")
-        for column in ("configuration", "first step (s)", "median step (ms)", "rays/s", "speed vs nerfacto"):
+        table = Table(title=f"Training throughput on {device}")
+        columns = (
+            "configuration",
+            "rays per batch",
+            "first step (s)",
+            "median step (ms)",
+            "rays/s",
+            "speed vs nerfacto",
+        )
+        for column in columns:
             table.add_column(column, justify="right")
         for name in self.steps:
             table.add_row(
                 name,
+                f"{self.rays_per_batch[name]}",
                 f"{self.first_step[name]:.1f}",
                 f"{self.median(name) * 1e3:.0f}",
-                f"{self.rays_per_batch / self.median(name):,.0f}",
+                f"{self.rays_per_batch[name] / self.median(name):,.0f}",
                 f"{self.ratio(NERFACTO, name):.2f}x",
             )
         CONSOLE.print(table)
@@ -73,7 +82,8 @@ class Throughput:
 
 @dataclass
 class ThroughputBenchmark:
-    """Times training steps of each configuration after a warm-up, all at the same batch size."""
+    """Times training steps of each configuration after a warm-up, all at --rays-per-batch but a variant that sets its
+    own."""
 
     device: Literal["cpu", "cuda"] = "cpu"
     """Device to train on."""
@@ -82,7 +92,8 @@ class ThroughputBenchmark:
     warmup_steps: int = 3
     """Untimed steps first, so one-off costs (allocation, compilation) are not counted."""
     rays_per_batch: int = 1024
-    """Rays per training batch for every configuration (the paper's 1024)."""
+    """Rays per training batch (the paper's 1024); a variant that sets --pipeline.datamanager.train-num-rays-per-batch
+    is timed at its own."""
     num_tasks: int = 10
     """Tasks of the demo trajectory; continual methods are timed in the last task (half its rays replayed with
     continual-ngp's defaults, 90% with the paper's uniform batches at 10 tasks)."""
@@ -106,8 +117,8 @@ class ThroughputBenchmark:
         for recipe in map(parse_recipe, self.variants):
             if recipe.name in configs:
                 raise SystemExit(f"--variants {recipe.name}: a configuration has that name already")
-            config = recipe_config(recipe.arguments, option=f"--variants {recipe.name}")
-            configs[recipe.name] = on_demo(config, demo, self.device, output_dir, **options)
+            config = recipe_config(recipe.arguments, f"--variants {recipe.name}", rays_per_batch=self.rays_per_batch)
+            configs[recipe.name] = on_demo(config, demo, self.device, output_dir, num_tasks=self.num_tasks)
         return configs
 
     def last_task_trainer(self, config: ContinualTrainerConfig) -> ContinualTrainer:
@@ -127,11 +138,12 @@ class ThroughputBenchmark:
         """Step times of every configuration; their run folders go to `output_dir`, which must outlive the process's
         tensorboard writers (nerfstudio keeps them globally)."""
         configs = self.configs(output_dir)
-        result = Throughput(self.rays_per_batch)
+        result = Throughput()
         trainers = {name: self.last_task_trainer(config) for name, config in configs.items()}
         for name in (REPLAY, PAPER):  # against continual-ngp-incre: a variant may differ from it in more than replay
             result.replayed_share[name] = replayed_share(trainers[name])
         for name, trainer in trainers.items():
+            result.rays_per_batch[name] = configs[name].pipeline.datamanager.train_num_rays_per_batch
             result.first_step[name] = self.step_seconds(trainer, 0)
             for step in range(1, self.warmup_steps):
                 trainer.train_iteration(step)
